@@ -1,0 +1,181 @@
+"""Iterative inference: filter positions and estimate normals in one learned pass per step.
+
+Each iteration (METHOD.md, Inference): patches around every point -> network ->
+p' = p + r R^T d; Taubin-like inflation over 100 neighbours; LRMA update over 20. Then the
+normals are oriented consistently (ours; the paper's are unoriented).
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from scipy.spatial import cKDTree
+
+from .config import INFLATION_NEIGHBOURS, LRMA_NEIGHBOURS, MIN_BALL_POINTS
+from .device import autocast, pick_device
+from .errors import Cancelled, InputError
+from .orient import ORIENTATIONS, orient_normals
+from .patches import PatchSource, bbox_diagonal, from_frame, make_patches
+from .refine import inflation, lrma_update
+
+ACTIVATION_BUDGET = 100_000_000   # floats per forward chunk: bounds memory on any cloud size
+
+
+@dataclass
+class DenoiseResult:
+    points: np.ndarray        # (N, 3) float64, same order as the input
+    normals: np.ndarray       # (N, 3) float32, unit length, oriented as asked
+    outliers: np.ndarray      # (N,) bool: too few neighbours; these points were not moved
+    displacement: np.ndarray  # (N,) float64: distance each point moved
+    seconds: float
+    iterations: int
+
+
+def validate_points(points) -> np.ndarray:
+    """(N, 3) float64 copy of the input, or an InputError that says what is wrong."""
+    try:
+        arr = np.asarray(points, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InputError("points must be an (N, 3) array of numbers") from None
+    if arr.ndim != 2 or arr.shape[1] != 3:
+        raise InputError(f"points must be an (N, 3) array of x, y, z; got shape {arr.shape}")
+    if len(arr) == 0:
+        raise InputError("the point cloud is empty")
+    bad = ~np.isfinite(arr).all(axis=1)
+    if bad.any():
+        rows = np.flatnonzero(bad)
+        raise InputError(f"{len(rows)} point(s) have NaN or infinite coordinates (first at row {rows[0]}); "
+                         "remove or fix them first")
+    if len(arr) < MIN_BALL_POINTS:
+        raise InputError(f"the cloud has {len(arr)} point(s); at least {MIN_BALL_POINTS} are needed")
+    if bbox_diagonal(arr) == 0.0:
+        raise InputError("all points are at the same position; there is no surface to fit")
+    return arr.copy()
+
+
+def find_outliers(points, radius):
+    """Points whose ball (self included) holds fewer than MIN_BALL_POINTS points."""
+    dist, _ = cKDTree(points).query(points, k=MIN_BALL_POINTS, distance_upper_bound=radius, workers=-1)
+    return ~np.isfinite(dist.reshape(len(points), -1)).all(axis=1)
+
+
+def _chunk_size(model):
+    cfg = model.config
+    return max(64, ACTIVATION_BUDGET // (cfg.points_per_patch * max(cfg.encoder_channels)))
+
+
+def network_pass(model, points, radius, rng, device, points_per_patch=None, report=None, cancel=None):
+    """Displacement (world units) and unit normal for every point, from its patch."""
+    n_points = points_per_patch or model.config.points_per_patch
+    source = PatchSource(points, radius, n_points, rng)
+    disp = np.empty_like(points)
+    normals = np.empty_like(points)
+    chunk = _chunk_size(model)
+    with torch.inference_mode():
+        for start in range(0, len(points), chunk):
+            if cancel is not None and cancel.is_set():
+                raise Cancelled("cancelled")
+            stop = min(start + chunk, len(points))
+            patches, frames, _ = make_patches(source, points[start:stop], rng)
+            with autocast(device):
+                d, n = model(torch.from_numpy(patches).to(device))
+            disp[start:stop] = from_frame(d.float().cpu().numpy().astype(np.float64), frames) * radius
+            normals[start:stop] = from_frame(n.float().cpu().numpy().astype(np.float64), frames)
+            if report is not None:
+                report(stop / len(points))
+    normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
+    return disp, normals
+
+
+def denoise(points, model, iterations=4, *, patch_radius=None, patch_radius_fraction=None,
+            points_per_patch=None, normals_only=False, orientation="outward", viewpoint=None,
+            device="auto", progress=None, cancel=None, seed=0, refine=True):
+    """Filter a noisy cloud and estimate oriented normals.
+
+    points: (N, 3) array, any units. patch_radius: absolute radius; otherwise
+    patch_radius_fraction (default: the model's, 5%) of the bbox diagonal, recomputed each
+    iteration. normals_only: one pass, positions returned bit-identical. orientation:
+    'outward', 'viewpoint' (needs viewpoint=(x, y, z)) or 'none'. progress(fraction, message)
+    is called as work proceeds; setting `cancel` (a threading.Event) raises Cancelled.
+    refine=False skips inflation and the LRMA update (the network output alone).
+    """
+    t0 = time.time()
+    original = validate_points(points)
+    if orientation not in ORIENTATIONS:
+        raise InputError(f"unknown orientation {orientation!r}; choose one of {', '.join(ORIENTATIONS)}")
+    if orientation == "viewpoint" and viewpoint is None:
+        raise InputError("orientation 'viewpoint' needs a viewpoint (x, y, z)")
+    iterations = 1 if normals_only else int(iterations)
+    if iterations < 1:
+        raise InputError(f"iterations must be at least 1, got {iterations}")
+    if patch_radius is not None and not (np.isfinite(patch_radius) and patch_radius > 0):
+        raise InputError(f"patch radius must be a positive number, got {patch_radius!r}")
+    fraction = patch_radius_fraction or model.config.patch_radius_fraction
+    if not 0 < fraction < 1:
+        raise InputError(f"patch radius fraction must be between 0 and 1, got {fraction!r}")
+    dev = pick_device(device)
+    model = model.to(dev).eval()
+    rng = np.random.default_rng(seed)
+
+    def report(fraction_done, message):
+        if progress is not None:
+            progress(min(max(fraction_done, 0.0), 1.0), message)
+
+    radius0 = patch_radius or fraction * bbox_diagonal(original)
+    outliers = find_outliers(original, radius0)
+    inliers = np.flatnonzero(~outliers)
+    if len(inliers) < MIN_BALL_POINTS:
+        raise InputError("no point has enough neighbours within the patch radius; "
+                         "raise the patch radius or check the cloud's units")
+    current = original[inliers].copy()
+    normals = None
+    for it in range(iterations):
+        radius = patch_radius or fraction * bbox_diagonal(current)
+        base = it / iterations
+
+        def net_report(f, it=it, base=base):
+            report(base + 0.85 * f / iterations, f"iteration {it + 1}/{iterations}: network {int(f * 100)}%")
+
+        disp, new_normals = network_pass(model, current, radius, rng, dev, points_per_patch,
+                                         net_report, cancel)
+        if normals is not None:
+            # Keep the sign of the previous iteration's normal (the network's is unoriented).
+            flip = np.einsum("ij,ij->i", new_normals, normals) < 0
+            new_normals[flip] *= -1
+        normals = new_normals
+        if normals_only:
+            break
+        filtered = current + disp
+        if refine:
+            report(base + 0.9 / iterations, f"iteration {it + 1}/{iterations}: refining")
+            filtered = inflation(filtered, current, INFLATION_NEIGHBOURS)
+            filtered = lrma_update(filtered, normals, LRMA_NEIGHBOURS)
+        if cancel is not None and cancel.is_set():
+            raise Cancelled("cancelled")
+        current = filtered
+
+    out_points = original.copy()
+    if not normals_only:
+        out_points[inliers] = current
+    all_normals = np.empty_like(original)
+    all_normals[inliers] = normals
+    if outliers.any():
+        # Outliers keep their position; they borrow the normal of the nearest inlier.
+        _, near = cKDTree(out_points[inliers]).query(out_points[outliers], workers=-1)
+        all_normals[outliers] = normals[near]
+    report(0.97, "orienting normals")
+    all_normals = orient_normals(out_points, all_normals, orientation, viewpoint)
+    all_normals /= np.linalg.norm(all_normals, axis=1, keepdims=True)
+    displacement = np.linalg.norm(out_points - original, axis=1)
+    report(1.0, "done")
+    return DenoiseResult(points=out_points, normals=all_normals.astype(np.float32), outliers=outliers,
+                         displacement=displacement, seconds=time.time() - t0, iterations=iterations)
+
+
+def estimate_normals(points, model, **options):
+    """Normals only: one network pass, positions untouched (bit-identical)."""
+    options.pop("iterations", None)
+    options["normals_only"] = True
+    return denoise(points, model, iterations=1, **options)

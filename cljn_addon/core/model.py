@@ -1,0 +1,172 @@
+"""Encoder f, projection head g and regressor h (METHOD.md, Networks); weights I/O.
+
+The per-point shared MLP is written as Linear layers on (B*n, C) rows, which is the same
+function as Conv1d with kernel 1 and runs as one matrix product per layer.
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import torch
+from torch import nn
+
+from .config import ModelConfig, get_preset
+from .errors import ModelMismatchError, ModelNotFoundError
+
+WEIGHTS_DIR = Path(__file__).resolve().parent.parent / "weights"
+DEFAULT_WEIGHTS = WEIGHTS_DIR / "cljn_small.safetensors"
+
+
+class Encoder(nn.Module):
+    """Shared per-point MLP with BatchNorm + ReLU after every layer, then max-pool."""
+
+    def __init__(self, channels):
+        super().__init__()
+        layers, c_in = [], 3
+        for c_out in channels:
+            layers += [nn.Linear(c_in, c_out), nn.BatchNorm1d(c_out), nn.ReLU(inplace=True)]
+            c_in = c_out
+        self.mlp = nn.Sequential(*layers)
+
+    def forward(self, patches: torch.Tensor) -> torch.Tensor:   # (B, n, 3) -> (B, C)
+        b, n, _ = patches.shape
+        per_point = self.mlp(patches.reshape(b * n, 3))
+        return per_point.reshape(b, n, -1).amax(dim=1)
+
+
+def _mlp(c_in, hidden, c_out, dropout=0.0):
+    layers = []
+    for c in hidden:
+        layers += [nn.Linear(c_in, c), nn.BatchNorm1d(c), nn.ReLU(inplace=True)]
+        if dropout:
+            layers.append(nn.Dropout(dropout))
+        c_in = c
+    layers.append(nn.Linear(c_in, c_out))
+    return nn.Sequential(*layers)
+
+
+class ProjectionHead(nn.Module):
+    """g: feature -> hidden -> projection, no activation on the last layer."""
+
+    def __init__(self, feature_dim, channels):
+        super().__init__()
+        self.mlp = _mlp(feature_dim, channels[:-1], channels[-1])
+
+    def forward(self, features):
+        return self.mlp(features)
+
+
+class Regressor(nn.Module):
+    """h: feature -> hidden (BN+ReLU+Dropout) -> 6, tanh. Output: displacement, normal."""
+
+    def __init__(self, feature_dim, channels, dropout):
+        super().__init__()
+        self.mlp = _mlp(feature_dim, channels, 6, dropout)
+        # Start at the classic baseline: zero displacement, normal along the PCA z axis, so
+        # training only has to learn corrections (METHOD.md, lessons of the probe).
+        last = self.mlp[-1]
+        nn.init.normal_(last.weight, std=1e-3)
+        with torch.no_grad():
+            last.bias.copy_(torch.tensor([0.0, 0.0, 0.0, 0.0, 0.0, 1.0]))
+
+    def forward(self, features):
+        return torch.tanh(self.mlp(features))
+
+
+class CLJNNet(nn.Module):
+    def __init__(self, config: ModelConfig):
+        super().__init__()
+        self.config = config
+        self.encoder = Encoder(config.encoder_channels)
+        self.head = ProjectionHead(config.feature_dim, config.head_channels)
+        self.regressor = Regressor(config.feature_dim, config.regressor_channels, config.dropout)
+
+    def project(self, patches):
+        """Contrastive branch: L2-normalised projection z = g(f(P))."""
+        return nn.functional.normalize(self.head(self.encoder(patches)).float(), dim=1)
+
+    def forward(self, patches):
+        """Regression branch: (displacement in radius units, unit normal), both (B, 3)."""
+        out = self.regressor(self.encoder(patches)).float()
+        return out[:, :3], nn.functional.normalize(out[:, 3:], dim=1, eps=1e-8)
+
+
+def build_model(config="small") -> CLJNNet:
+    """An untrained network for a preset name or a ModelConfig."""
+    if isinstance(config, str):
+        config = get_preset(config)
+    return CLJNNet(config)
+
+
+def config_path_for(weights_path) -> Path:
+    return Path(weights_path).with_suffix(".json")
+
+
+def save_model(model: CLJNNet, path, extra_metadata: dict | None = None) -> Path:
+    """Write weights (safetensors, no pickle) and the JSON config beside them, atomically."""
+    from safetensors.torch import save_file
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    state = {k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()}
+    metadata = {"config": model.config.to_json()}
+    for key, value in (extra_metadata or {}).items():
+        metadata[key] = value if isinstance(value, str) else json.dumps(value)
+    tmp = path.with_name(path.name + ".tmp")
+    save_file(state, str(tmp), metadata=metadata)
+    tmp.replace(path)
+    cfg_tmp = config_path_for(path).with_name(config_path_for(path).name + ".tmp")
+    cfg_tmp.write_text(model.config.to_json() + "\n")
+    cfg_tmp.replace(config_path_for(path))
+    return path
+
+
+def load_model(path=None, device="cpu") -> CLJNNet:
+    """The shipped default model (path None) or the given weights file, in eval mode.
+
+    Refuses, with a message that names the problem, a missing file, a missing or unreadable
+    config, and weights whose tensors do not match the config.
+    """
+    from safetensors import SafetensorError
+    from safetensors.torch import load_file
+
+    if path is None:
+        path = DEFAULT_WEIGHTS
+        if not path.exists():
+            raise ModelNotFoundError(
+                f"No trained default model ships with this build yet (expected {path}). "
+                "Train one with `python standalone/run.py train` and pass its weights file.")
+    path = Path(path)
+    if not path.exists():
+        raise ModelNotFoundError(f"Model file not found: {path}")
+    cfg_path = config_path_for(path)
+    if not cfg_path.exists():
+        raise ModelMismatchError(f"Model config missing: {cfg_path} must sit beside {path.name}")
+    try:
+        config = ModelConfig.from_dict(json.loads(cfg_path.read_text()))
+    except (ValueError, TypeError) as exc:
+        raise ModelMismatchError(f"Model config {cfg_path} is not valid: {exc}") from None
+    try:
+        state = load_file(str(path))
+    except (SafetensorError, OSError, ValueError) as exc:
+        raise ModelMismatchError(f"{path} is not a readable safetensors weights file: {exc}") from None
+    model = CLJNNet(config)
+    expected = model.state_dict()
+    missing = sorted(set(expected) - set(state))
+    unexpected = sorted(set(state) - set(expected))
+    if missing or unexpected:
+        parts = []
+        if missing:
+            parts.append(f"missing {len(missing)} tensor(s), e.g. {missing[0]}")
+        if unexpected:
+            parts.append(f"{len(unexpected)} unexpected tensor(s), e.g. {unexpected[0]}")
+        raise ModelMismatchError(f"{path.name} does not match its config {cfg_path.name} "
+                                 f"(preset {config.preset!r}): " + "; ".join(parts))
+    for key, tensor in expected.items():
+        if tuple(state[key].shape) != tuple(tensor.shape):
+            raise ModelMismatchError(
+                f"{path.name} does not match its config {cfg_path.name}: tensor {key} has shape "
+                f"{tuple(state[key].shape)}, the config needs {tuple(tensor.shape)}")
+    model.load_state_dict(state)
+    return model.to(device).eval()
