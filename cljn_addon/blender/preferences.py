@@ -1,0 +1,85 @@
+"""Add-on preferences: default model file, default device, and the Python dependencies."""
+
+import bpy
+from bpy.props import BoolProperty, EnumProperty, StringProperty
+
+from . import deps
+
+ADDON_PACKAGE = deps.ADDON_PACKAGE
+
+PREF_DEVICES = (
+    ("AUTO", "Auto", "A GPU when torch sees one, else the CPU"),
+    ("CPU", "CPU", "Always the CPU"),
+    ("GPU", "GPU", "CUDA or Apple MPS"),
+)
+
+
+def get_preferences(context=None):
+    """This add-on's preferences, or None when it is not registered as an add-on."""
+    context = context or bpy.context
+    addon = context.preferences.addons.get(ADDON_PACKAGE)
+    return addon.preferences if addon is not None else None
+
+
+def draw_dependencies(layout, context, compact=False):
+    """Dependency status and the Install button; shared by the preferences and the panel."""
+    found = deps.status()
+    missing = deps.missing()
+    col = layout.column(align=True)
+    if not compact:
+        for name in deps.REQUIRED:
+            ok = found.get(name) and deps.import_error(name) is None
+            col.label(text=f"{name}: {'found' if ok else 'missing'}", icon="CHECKMARK" if ok else "ERROR")
+    if missing:
+        box = layout.box()
+        box.alert = True
+        box.label(text=f"Missing in Blender's Python: {', '.join(missing)}", icon="ERROR")
+        box.label(text="Press Install Dependencies (downloads torch, several hundred MB)")
+        box.operator("cljn.install_dependencies", icon="IMPORT")
+    elif not compact:
+        row = layout.row()
+        row.operator("cljn.install_dependencies", text="Reinstall Dependencies", icon="IMPORT")
+    if not compact:
+        layout.operator("cljn.check_dependencies", icon="FILE_REFRESH")
+
+
+class CLJN_AddonPreferences(bpy.types.AddonPreferences):
+    bl_idname = ADDON_PACKAGE
+
+    default_model_path: StringProperty(
+        name="Default Model File", subtype="FILE_PATH",
+        description="Used when the panel's Model is Default; empty means the model shipped with the extension")
+    device: EnumProperty(name="Device", items=PREF_DEVICES, default="AUTO",
+                         description="Where the network runs when the panel's Device is Default")
+    torch_cpu_only: BoolProperty(
+        name="CPU-only torch", default=True,
+        description="Install the CPU build of torch (much smaller download); untick for CUDA builds")
+    pip_extra_args: StringProperty(
+        name="Extra pip Arguments",
+        description="Added to the pip command line, e.g. --proxy URL or --no-index --find-links DIR")
+
+    def draw(self, context):
+        layout = self.layout
+        layout.use_property_split = True
+        layout.prop(self, "default_model_path")
+        layout.prop(self, "device")
+        box = layout.box()
+        box.label(text="Dependencies (torch, scipy, safetensors)")
+        draw_dependencies(box, context)
+        sub = box.column()
+        sub.prop(self, "torch_cpu_only")
+        sub.prop(self, "pip_extra_args")
+        sub.label(text=f"Installed into: {deps.site_packages_dir(create=False)}")
+
+
+classes = (CLJN_AddonPreferences,)
+
+
+def register():
+    for cls in classes:
+        bpy.utils.register_class(cls)
+
+
+def unregister():
+    for cls in reversed(classes):
+        bpy.utils.unregister_class(cls)

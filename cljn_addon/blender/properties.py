@@ -1,0 +1,56 @@
+"""The panel's settings, stored per scene as `scene.cljn_denoise` (saved with the .blend)."""
+
+import bpy
+from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, StringProperty
+
+MODEL_SOURCES = (
+    ("DEFAULT", "Default", "The model file set in the add-on preferences, else the shipped model"),
+    ("FILE", "File", "A .safetensors weights file (its .json config beside it)"),
+)
+ORIENTATIONS = (
+    ("OUTWARD", "Outward", "Point normals out of the shape"),
+    ("CAMERA", "Toward Camera", "Point normals toward the active scene camera (scans)"),
+    ("CURSOR", "Toward 3D Cursor", "Point normals toward the 3D cursor"),
+    ("NONE", "None", "Leave the sign of each normal as the network gives it"),
+)
+DEVICES = (
+    ("PREFERENCES", "Default", "The device chosen in the add-on preferences"),
+    ("AUTO", "Auto", "A GPU when torch sees one, else the CPU"),
+    ("CPU", "CPU", "Always the CPU"),
+    ("GPU", "GPU", "CUDA or Apple MPS; refuses to run when torch sees no GPU"),
+)
+DEVICE_TO_CORE = {"AUTO": "auto", "CPU": "cpu", "GPU": "gpu"}
+
+
+class CLJN_PG_settings(bpy.types.PropertyGroup):
+    model_source: EnumProperty(name="Model", items=MODEL_SOURCES, default="DEFAULT")
+    model_path: StringProperty(
+        name="Model File", subtype="FILE_PATH",
+        description="Network weights (.safetensors) with their .json config beside them")
+    iterations: IntProperty(
+        name="Iterations", default=4, min=1, max=20, soft_max=10,
+        description="Filtering passes; more removes more noise (4 is the paper's default, 10 for heavy noise)")
+    patch_radius: FloatProperty(
+        name="Patch Radius", default=5.0, min=0.1, max=50.0, soft_min=1.0, soft_max=20.0,
+        subtype="PERCENTAGE", precision=1,
+        description="Neighbourhood radius in % of the bounding-box diagonal of the cloud (world space)")
+    orientation: EnumProperty(name="Orientation", items=ORIENTATIONS, default="OUTWARD")
+    device: EnumProperty(name="Device", items=DEVICES, default="PREFERENCES")
+    use_mesh_vertices: BoolProperty(
+        name="Use Vertices of Meshes", default=False,
+        description="Also filter the vertices of meshes that have faces (the faces follow the vertices)")
+
+
+classes = (CLJN_PG_settings,)
+
+
+def register():
+    for cls in classes:
+        bpy.utils.register_class(cls)
+    bpy.types.Scene.cljn_denoise = bpy.props.PointerProperty(type=CLJN_PG_settings)
+
+
+def unregister():
+    del bpy.types.Scene.cljn_denoise
+    for cls in reversed(classes):
+        bpy.utils.unregister_class(cls)

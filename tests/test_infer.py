@@ -1,0 +1,108 @@
+"""denoise / estimate_normals behaviour with an untrained network, and bad input."""
+import threading
+
+import numpy as np
+import pytest
+
+from cljn_addon.core import Cancelled, InputError, build_model, denoise, estimate_normals
+from cljn_addon.core.shapes import sample_shape
+
+
+@pytest.fixture(scope="module")
+def tiny():
+    import torch
+    torch.manual_seed(0)
+    return build_model("tiny").eval()
+
+
+def test_keeps_count_order_finiteness_and_flags_isolated_points(tiny):
+    noisy, _, _ = sample_shape("sphere", 3000, noise=0.01, seed=1)
+    far = np.array([[5.0, 5.0, 5.0], [-5.0, 4.0, 0.0]])
+    cloud = np.vstack([noisy[:1500], far[:1], noisy[1500:], far[1:]])
+    res = denoise(cloud, tiny, iterations=2, device="cpu")
+    assert res.points.shape == cloud.shape and res.normals.shape == cloud.shape
+    assert np.isfinite(res.points).all() and np.isfinite(res.normals).all()
+    assert np.allclose(np.linalg.norm(res.normals, axis=1), 1.0, atol=1e-5)
+    assert np.flatnonzero(res.outliers).tolist() == [1500, len(cloud) - 1]
+    assert np.array_equal(res.points[res.outliers], cloud[res.outliers])        # flagged, not moved
+    moved = res.displacement[~res.outliers]
+    assert moved.max() < 0.2                                                    # order kept: small moves
+    assert np.allclose(res.displacement, np.linalg.norm(res.points - cloud, axis=1))
+
+
+def test_normals_only_leaves_positions_bit_identical(tiny):
+    noisy, _, _ = sample_shape("box", 2000, noise=0.005, seed=2)
+    noisy = noisy.astype(np.float32)
+    res = estimate_normals(noisy, tiny, device="cpu")
+    assert np.array_equal(res.points.astype(np.float32), noisy)
+    assert not res.displacement.any()
+
+
+def test_seeded_runs_are_deterministic(tiny):
+    noisy, _, _ = sample_shape("torus", 2000, noise=0.005, seed=3)
+    a = denoise(noisy, tiny, iterations=1, seed=5)
+    b = denoise(noisy, tiny, iterations=1, seed=5)
+    assert np.array_equal(a.points, b.points)
+
+
+def test_progress_reaches_one_and_cancel_stops(tiny):
+    noisy, _, _ = sample_shape("sphere", 2000, noise=0.005, seed=4)
+    seen = []
+    denoise(noisy, tiny, iterations=2, progress=lambda f, m: seen.append(f))
+    assert seen[-1] == 1.0 and all(b >= a for a, b in zip(seen, seen[1:]))
+    cancel = threading.Event()
+    cancel.set()
+    with pytest.raises(Cancelled):
+        denoise(noisy, tiny, cancel=cancel)
+
+
+@pytest.mark.parametrize("bad, message", [
+    (np.zeros((0, 3)), "empty"),
+    (np.zeros((10, 2)), r"\(N, 3\)"),
+    ("points", r"\(N, 3\)"),
+    (np.r_[np.random.default_rng(0).normal(size=(20, 3)), [[np.nan, 0, 0]]], "row 20"),
+    (np.r_[np.random.default_rng(0).normal(size=(20, 3)), [[np.inf, 0, 0]]], "NaN or infinite"),
+    (np.ones((50, 3)), "same position"),
+    (np.zeros((2, 3)) + [[0, 0, 0], [1, 0, 0]], "at least 3"),
+])
+def test_bad_input_gets_a_clear_error(tiny, bad, message):
+    with pytest.raises(InputError, match=message):
+        denoise(bad, tiny)
+
+
+def test_bad_options_get_clear_errors(tiny):
+    pts = np.random.default_rng(0).normal(size=(100, 3))
+    with pytest.raises(InputError, match="viewpoint"):
+        denoise(pts, tiny, orientation="viewpoint")
+    with pytest.raises(InputError, match="iterations"):
+        denoise(pts, tiny, iterations=0)
+    with pytest.raises(InputError, match="patch radius"):
+        denoise(pts, tiny, patch_radius=-1.0)
+    with pytest.raises(InputError, match="unknown device"):
+        denoise(pts, tiny, device="tpu")
+
+
+@pytest.mark.parametrize("kind", ["collinear", "planar", "fewer_than_patch"])
+def test_degenerate_clouds_give_a_defined_result(tiny, kind):
+    rng = np.random.default_rng(1)
+    if kind == "collinear":
+        pts = np.c_[rng.uniform(0, 1, 300), np.zeros(300), np.zeros(300)]
+    elif kind == "planar":
+        pts = np.c_[rng.uniform(0, 1, (300, 2)), np.zeros(300)]
+    else:
+        pts = rng.normal(scale=0.01, size=(10, 3))          # fewer points than a patch holds
+        with pytest.raises(InputError, match="enough neighbours"):
+            denoise(pts, tiny)                                # 5% of the diagonal is too small
+    res = denoise(pts, tiny, iterations=1, patch_radius=0.05 if kind == "fewer_than_patch" else None)
+    assert res.points.shape == pts.shape
+    assert np.isfinite(res.points).all()
+    assert np.allclose(np.linalg.norm(res.normals, axis=1), 1.0, atol=1e-5)
+    if kind == "planar":
+        assert np.abs(res.points[:, 2]).max() < 1e-3              # stays in its plane
+
+
+def test_all_points_isolated_is_refused(tiny):
+    pts = np.eye(3) * 100
+    pts = np.r_[pts, [[0, 0, 0]]]
+    with pytest.raises(InputError, match="enough neighbours"):
+        denoise(pts, tiny, patch_radius=1.0)

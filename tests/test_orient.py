@@ -1,0 +1,44 @@
+"""Orientation: signs agree with the true outward normals."""
+import numpy as np
+import pytest
+
+from cljn_addon.core import InputError
+from cljn_addon.core.baselines import pca_normals
+from cljn_addon.core.metrics import sign_agreement
+from cljn_addon.core.orient import orient_normals
+from cljn_addon.core.shapes import sample_shape
+
+
+@pytest.mark.parametrize("name", ["sphere", "torus", "box"])
+@pytest.mark.parametrize("noise", [0.0, 0.005])
+def test_outward_orientation_of_estimated_normals(name, noise):
+    noisy, _, truth = sample_shape(name, 20000, noise=noise, seed=7)
+    unoriented = pca_normals(noisy, 60)              # arbitrary signs, blurred at edges
+    oriented = orient_normals(noisy, unoriented, "outward")
+    assert sign_agreement(oriented, truth) >= 0.99
+    assert np.allclose(np.abs(oriented), np.abs(unoriented))   # signs change, nothing else
+
+
+@pytest.mark.parametrize("name", ["sphere", "torus", "box", "stepped_block", "cylinder"])
+def test_outward_orientation_of_sharp_normals_with_random_signs(name):
+    _, clean, truth = sample_shape(name, 20000, seed=8)
+    rng = np.random.default_rng(0)
+    scrambled = truth * np.where(rng.random(len(truth)) < 0.5, -1.0, 1.0)[:, None]
+    assert sign_agreement(orient_normals(clean, scrambled, "outward"), truth) >= 0.99
+
+
+def test_viewpoint_orientation_faces_the_scanner():
+    rng = np.random.default_rng(1)
+    pts = np.c_[rng.uniform(-1, 1, (500, 2)), np.zeros(500)]
+    normals = np.tile([0, 0, 1.0], (500, 1)) * np.where(rng.random(500) < 0.5, -1, 1)[:, None]
+    out = orient_normals(pts, normals, "viewpoint", viewpoint=(0, 0, -5))
+    assert np.all(out[:, 2] == -1.0)
+    assert np.array_equal(orient_normals(pts, normals, "none"), normals)
+
+
+def test_orientation_bad_options():
+    pts = np.zeros((3, 3))
+    with pytest.raises(InputError, match="viewpoint"):
+        orient_normals(pts, pts, "viewpoint")
+    with pytest.raises(InputError, match="unknown orientation"):
+        orient_normals(pts, pts, "inward")
