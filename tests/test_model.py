@@ -85,3 +85,19 @@ def test_weights_file_holds_no_pickle(tmp_path):
     header_len = int(np.frombuffer(path.read_bytes()[:8], dtype="<u8")[0])
     header = json.loads(path.read_bytes()[8:8 + header_len])
     assert "__metadata__" in header and "config" in header["__metadata__"]
+
+
+def test_folded_inference_net_matches_the_eval_model():
+    from cljn_addon.core.model import inference_net
+    torch.manual_seed(0)
+    net = build_model("tiny")
+    net.train()
+    with torch.no_grad():                     # give BatchNorm non-trivial running statistics
+        for _ in range(5):
+            net(torch.randn(32, 64, 3) * 2 + 0.5)
+    net.eval()
+    x = torch.randn(16, 64, 3)
+    with torch.no_grad():
+        d1, n1 = net(x)
+        d2, n2 = inference_net(net)(x)
+    assert torch.allclose(d1, d2, atol=1e-5) and torch.allclose(n1, n2, atol=1e-5)

@@ -16,6 +16,7 @@ from scipy.spatial import cKDTree
 from .config import INFLATION_NEIGHBOURS, LRMA_NEIGHBOURS, MIN_BALL_POINTS
 from .device import autocast, pick_device
 from .errors import Cancelled, InputError
+from .model import inference_net
 from .orient import ORIENTATIONS, orient_normals
 from .patches import PatchSource, bbox_diagonal, from_frame, make_patches
 from .refine import inflation, lrma_update
@@ -116,7 +117,7 @@ def denoise(points, model, iterations=4, *, patch_radius=None, patch_radius_frac
     if not 0 < fraction < 1:
         raise InputError(f"patch radius fraction must be between 0 and 1, got {fraction!r}")
     dev = pick_device(device)
-    model = model.to(dev).eval()
+    model = inference_net(model.to(dev).eval())
     rng = np.random.default_rng(seed)
 
     def report(fraction_done, message):

@@ -279,6 +279,15 @@ def train_model(sources, out_dir, config: TrainConfig | None = None, *, resume=F
     return weights
 
 
+def export_checkpoint(checkpoint, weights_path):
+    """Weights + config from a (possibly unfinished) run's checkpoint, e.g. to try it early."""
+    state = torch.load(checkpoint, map_location="cpu", weights_only=True)
+    cfg = TrainConfig(**json.loads(state["train_config"]))
+    model = build_model(get_preset(cfg.preset))
+    model.load_state_dict(state["model"])
+    return save_model(model.eval(), weights_path, {"checkpoint": {"stage": state["stage"], "step": state["step"]}})
+
+
 def write_model_card(path, card, validation_table=None):
     cfg = card["train_config"]
     lines = [
