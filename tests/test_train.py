@@ -20,14 +20,29 @@ def read_log(folder):
     return [json.loads(line) for line in (folder / "log.jsonl").read_text().splitlines()]
 
 
+def held_out_joint_loss(model):
+    """Joint loss on a fixed batch from fresh noise variants of the training shapes."""
+    from cljn_addon.core.data import load_clean_cloud, make_training_shape, regression_batch
+    from cljn_addon.core.losses import joint_loss
+
+    shapes = [make_training_shape(s, *load_clean_cloud(s, 3000, 99), 64, 0.05, 123) for s in SHAPES]
+    patches, gt, gt_n, _, _ = regression_batch(shapes, 512, 128, np.random.default_rng(7))
+    with torch.no_grad():
+        disp, normal = model.eval()(torch.from_numpy(patches))
+        return joint_loss(disp, normal, torch.from_numpy(gt), torch.from_numpy(gt_n))[0].item()
+
+
 def test_tiny_training_runs_and_the_losses_fall(tmp_path):
+    from cljn_addon.core import build_model
+
+    torch.manual_seed(0)
+    untrained = build_model("tiny")
     weights = train_model(SHAPES, tmp_path, cache_dir=None, **TINY_RUN)
     log = read_log(tmp_path)
     contrastive = [r["loss"] for r in log if r["stage"] == "contrastive"]
-    regression = [r["loss"] for r in log if r["stage"] == "regression"]
     assert contrastive[-1] < contrastive[0]
-    assert np.mean(regression[-3:]) < np.mean(regression[:3])
     model = load_model(weights)
+    assert held_out_joint_loss(model) < 0.9 * held_out_joint_loss(untrained)
     assert model.config.preset == "tiny"
     assert "Stage 2" in (tmp_path / "MODEL_CARD.md").read_text()
 

@@ -53,6 +53,7 @@ class TrainConfig:
     loss: str = "joint"                     # or "fixed" (the ablation)
     gt_points: int = 256                    # clean points per ground-truth patch
     seed: int = 0
+    init_weights: str = ""                  # start from a trained model (e.g. to fine-tune further)
     checkpoint_minutes: float = 5.0
     bf16: bool = True
     device: str = "auto"
@@ -181,6 +182,13 @@ def train_model(sources, out_dir, config: TrainConfig | None = None, *, resume=F
     model = build_model(model_cfg).to(device)
     stage, step, elapsed = "contrastive", 0, 0.0
     rng = np.random.default_rng(cfg.seed)
+    if cfg.init_weights and state is None:
+        from .model import load_model
+        start = load_model(cfg.init_weights)
+        if start.config != model_cfg:
+            raise InputError(f"{cfg.init_weights} is a {start.config.preset!r} model, not {cfg.preset!r}")
+        model.load_state_dict(start.state_dict())
+        log(f"initialised from {cfg.init_weights}")
     if state is not None:
         model.load_state_dict(state["model"])
         stage, step, elapsed = state["stage"], int(state["step"]), float(state["elapsed"])
@@ -305,6 +313,10 @@ def write_model_card(path, card, validation_table=None):
         f"- Wall time: {card['wall_seconds'] / 60:.1f} min on {os.cpu_count()} CPU cores, bf16 autocast: {cfg['bf16']}",
         f"- Seed: {cfg['seed']}", "",
     ]
+    if cfg.get("init_weights"):
+        lines.insert(-1, f"- Initialised from: `{Path(cfg['init_weights']).name}`")
+    if card.get("history"):
+        lines[-1:-1] = ["- Earlier runs this model continues:"] + [f"  - {h}" for h in card["history"]]
     if validation_table:
         lines += ["## Validation", "", validation_table, ""]
     Path(path).write_text("\n".join(lines))
