@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from cljn_addon.core import Cancelled, load_model
+from cljn_addon.core.shapes import shape_mesh
 from cljn_addon.core.train import train_model
 
 TINY_RUN = dict(preset="tiny", points_per_shape=3000, patches_per_shape=384, contrastive_epochs=1,
@@ -37,14 +38,24 @@ def test_tiny_training_runs_and_the_losses_fall(tmp_path):
 
     torch.manual_seed(0)
     untrained = build_model("tiny")
-    weights = train_model(SHAPES, tmp_path, cache_dir=None, **TINY_RUN)
+    held_out = tmp_path / "validation"
+    held_out.mkdir()
+    v, f = shape_mesh("octahedron")
+    (held_out / "octa.off").write_text(
+        f"OFF\n{len(v)} {len(f)} 0\n" + "".join(f"{x} {y} {z}\n" for x, y, z in v)
+        + "".join(f"3 {a} {b} {c}\n" for a, b, c in f))
+    weights = train_model(SHAPES, tmp_path / "run", cache_dir=None, validation_dir=held_out,
+                          validation_points=1500, **TINY_RUN)
+    tmp_path = tmp_path / "run"
     log = read_log(tmp_path)
     contrastive = [r["loss"] for r in log if r["stage"] == "contrastive"]
     assert contrastive[-1] < contrastive[0]
     model = load_model(weights)
     assert held_out_joint_loss(model) < 0.9 * held_out_joint_loss(untrained)
     assert model.config.preset == "tiny"
-    assert "Stage 2" in (tmp_path / "MODEL_CARD.md").read_text()
+    card = (tmp_path / "MODEL_CARD.md").read_text()
+    assert "Stage 2" in card and "box (synthetic)" in card
+    assert "## Validation" in card and "| **mean** |" in card
 
 
 def test_interrupted_run_resumes_from_its_checkpoint(tmp_path):

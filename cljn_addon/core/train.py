@@ -30,6 +30,7 @@ from .model import build_model, save_model
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 DEFAULT_TRAIN_DIR = REPO_ROOT.parent / "shared" / "data" / "meshes" / "train"
+DEFAULT_VALIDATION_DIR = REPO_ROOT.parent / "shared" / "data" / "meshes" / "validation"
 DEFAULT_CACHE = Path(os.environ.get("CLJN_CACHE", Path.home() / ".cache" / "cljn_denoise"))
 
 
@@ -142,10 +143,11 @@ def _make_optimizer(model, cfg, stage, total_steps):
 
 def train_model(sources, out_dir, config: TrainConfig | None = None, *, resume=False,
                 progress=None, cancel=None, quick=False, show_progress=False, log=None,
-                cache_dir=DEFAULT_CACHE, **overrides):
+                cache_dir=DEFAULT_CACHE, validation_dir=None, validation_points=20_000, **overrides):
     """Train a model on meshes; returns the path of the written weights.
 
     sources: mesh files (.off/.obj/.ply), "shape:NAME" synthetic shapes, or (V, F) arrays.
+    validation_dir: held-out meshes; when given, the model card gets the eval table.
     overrides: TrainConfig fields (e.g. preset="tiny"). quick=True applies QUICK first.
     """
     log = log or (lambda msg: None)
@@ -282,9 +284,25 @@ def train_model(sources, out_dir, config: TrainConfig | None = None, *, resume=F
             "contrastive_steps": n_contrastive, "regression_steps": n_regression,
             "wall_seconds": round(wall, 1), "noise_levels": list(TRAIN_NOISE_LEVELS)}
     save_model(model.cpu(), weights, {"training": card})
-    write_model_card(out / "MODEL_CARD.md", card)
+    (out / "training.json").write_text(json.dumps(card, indent=2))
+    table = None
+    if validation_dir is not None and Path(validation_dir).is_dir():
+        table = validate(weights, validation_dir, validation_points, log)
+    write_model_card(out / "MODEL_CARD.md", card, table)
     log(f"wrote {weights} ({wall / 60:.1f} min)")
     return weights
+
+
+def validate(weights, mesh_dir, n_points, log=print):
+    """The eval command's table on held-out meshes, for the model card."""
+    from .evaluate import evaluate, format_table
+    from .meshio import read_mesh
+    from .model import load_model
+
+    shapes = [(p.stem, *read_mesh(p)) for p in find_meshes(mesh_dir)]
+    log(f"validating on {len(shapes)} meshes from {mesh_dir} ({n_points} points each)")
+    result = evaluate(shapes, load_model(weights), n_points=n_points, log=log)
+    return format_table(result)
 
 
 def export_checkpoint(checkpoint, weights_path):
@@ -336,6 +354,9 @@ def main(argv=None):
     parser.add_argument("--quick", action="store_true", help="small schedule (minutes), as Blender's button")
     parser.add_argument("--cache-dir", default=str(DEFAULT_CACHE), help="where sampled clouds are cached")
     parser.add_argument("--threads", type=int, default=None, help="torch CPU threads")
+    parser.add_argument("--validation-dir", default=str(DEFAULT_VALIDATION_DIR),
+                        help="held-out meshes for the model card's table (skipped if absent; '' to skip)")
+    parser.add_argument("--validation-points", type=int, default=20_000)
     for field in dataclasses.fields(TrainConfig):
         flag = "--" + field.name.replace("_", "-")
         if field.type == "bool":
@@ -356,7 +377,9 @@ def main(argv=None):
         overrides = {f.name: getattr(args, f.name) for f in dataclasses.fields(TrainConfig)
                      if getattr(args, f.name) is not None}
         train_model(sources, args.out, resume=args.resume, quick=args.quick, show_progress=True,
-                    log=lambda m: print(m, flush=True), cache_dir=args.cache_dir, **overrides)
+                    log=lambda m: print(m, flush=True), cache_dir=args.cache_dir,
+                    validation_dir=args.validation_dir or None, validation_points=args.validation_points,
+                    **overrides)
     except InputError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
