@@ -29,6 +29,11 @@ def patches_per_second(model, device, batch=1024, seconds=5.0):
     return done / (time.time() - t0)
 
 
+def peak_rss_gib():
+    import resource
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2 ** 20   # Linux: KiB
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(prog="run.py bench", description=__doc__)
     parser.add_argument("--presets", nargs="+", default=["small", "paper"])
@@ -53,7 +58,7 @@ def main(argv=None):
         else:
             t0 = time.time()
             denoise(noisy, model, iterations=args.iterations, device=args.device)
-            full = f"{time.time() - t0:.1f} s"
+            full = f"{time.time() - t0:.1f} s (peak memory of this process so far {peak_rss_gib():.2f} GiB)"
         print(f"| {name} | {model.config.points_per_patch} | {rate:,.0f} | {full} |", flush=True)
     return 0
 
