@@ -33,7 +33,14 @@ def main(argv=None):
         return 2
     noisy, clean, truth = sample_shape(args.shape, args.points, noise=args.noise / 100, seed=1)
     print(f"{args.shape}: {len(noisy)} points, Gaussian noise {args.noise:g}% of the bbox diagonal")
-    res = denoise(noisy, model, iterations=args.iterations, orientation="outward")
+    from tqdm import tqdm
+
+    with tqdm(total=100, unit="%", desc="denoising", leave=False) as bar:
+        def progress(fraction, message):
+            bar.set_description(message, refresh=False)
+            bar.update(int(fraction * 100) - bar.n)
+
+        res = denoise(noisy, model, iterations=args.iterations, orientation="outward", progress=progress)
     dist = MeshDistance(*shape_mesh(args.shape))
     sharp = sharp_feature_mask(clean, truth)
     pca = {k: pca_normals(noisy, k) for k in (20, 40, 60, 100)}
