@@ -42,3 +42,13 @@ def test_classic_baselines_beat_the_noisy_input():
     noisy, clean, normals = sample_shape("sphere", 20000, noise=0.01, seed=3)
     assert metrics.chamfer(pca_projection_filter(noisy, 60), clean) < 0.5 * metrics.chamfer(noisy, clean)
     assert metrics.msae(pca_normals(noisy, 60), normals) < 0.1
+
+
+def test_outward_truth_only_for_closed_consistent_meshes():
+    from cljn_addon.core.evaluate import is_closed_and_consistent
+    _, faces = shape_mesh("box")
+    assert is_closed_and_consistent(faces)
+    flipped = faces.copy()
+    flipped[0] = flipped[0, ::-1]
+    assert not is_closed_and_consistent(flipped)
+    assert not is_closed_and_consistent(faces[1:])          # a hole

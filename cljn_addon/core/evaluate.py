@@ -30,6 +30,18 @@ PCA_K = (10, 20, 40, 60, 100, 150, 200)
 FILTER_K = (20, 40, 60, 100, 150, 200)
 
 
+def is_closed_and_consistent(faces) -> bool:
+    """Every edge shared by exactly two faces that run it in opposite directions: only then
+    are the face normals a trustworthy outward truth."""
+    f = np.asarray(faces, np.int64)
+    directed = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    n = int(f.max()) + 1
+    key = directed[:, 0] * n + directed[:, 1]
+    reverse = directed[:, 1] * n + directed[:, 0]
+    unique, counts = np.unique(key, return_counts=True)
+    return bool(np.all(counts == 1) and np.all(np.isin(reverse, unique)))
+
+
 def prepare_shape(vertices, faces, n_points, seed):
     v = normalise_unit_diagonal(np.asarray(vertices, np.float64))
     f = np.asarray(faces, np.int64)
@@ -45,7 +57,7 @@ def evaluate(shapes, model, levels=TEST_NOISE_LEVELS, n_points=50_000, iteration
     prepared = []
     for i, (name, v, f) in enumerate(shapes):
         v, f, clean, normals = prepare_shape(v, f, n_points, seed + i)
-        prepared.append(dict(name=name, v=v, f=f, clean=clean, normals=normals,
+        prepared.append(dict(name=name, v=v, f=f, clean=clean, normals=normals, closed=is_closed_and_consistent(f),
                              sharp=sharp_feature_mask(clean, normals), dist=MeshDistance(v, f)))
     rows = []
     for li, level in enumerate(levels):
@@ -80,20 +92,22 @@ def evaluate(shapes, model, levels=TEST_NOISE_LEVELS, n_points=50_000, iteration
                 "p2s_noisy": float(shape["dist"].distance(cloud).mean()),
                 "p2s_filter": float(shape["dist"].distance(filtered).mean()),
                 "p2s_ours": float(shape["dist"].distance(res.points).mean()),
-                "sign_ours": sign_agreement(res.normals, shape["normals"]),
+                # Outward truth exists only for closed, consistently wound meshes.
+                "sign_ours": sign_agreement(res.normals, shape["normals"]) if shape["closed"] else float("nan"),
                 "seconds": seconds,
             })
             log(f"  level {level * 100:.1f}% {shape['name']}: MSAE ours {per_shape[-1]['msae_ours']:.4f} "
                 f"pca {per_shape[-1]['msae_pca']:.4f}; CD x1e5 ours {per_shape[-1]['cd_ours'] * 1e5:.2f} "
                 f"filter {per_shape[-1]['cd_filter'] * 1e5:.2f} noisy {per_shape[-1]['cd_noisy'] * 1e5:.2f}; "
                 f"{seconds:.1f} s")
-        row = {key: float(np.mean([p[key] for p in per_shape])) for key in per_shape[0] if key != "shape"}
+        row = {key: float(np.nanmean([p[key] for p in per_shape])) for key in per_shape[0] if key != "shape"}
         row.update(level=level, k_pca=k_pca, k_filter=k_filt, shapes=per_shape)
         rows.append(row)
     mean = {key: float(np.mean([r[key] for r in rows])) for key in rows[0]
             if key not in ("level", "k_pca", "k_filter", "shapes")}
     return {"levels": rows, "mean": mean, "points": n_points, "iterations": iterations,
-            "shapes": [s["name"] for s in prepared]}
+            "shapes": [s["name"] for s in prepared],
+            "open_shapes": [s["name"] for s in prepared if not s["closed"]]}
 
 
 def format_table(result) -> str:
@@ -111,8 +125,10 @@ def format_table(result) -> str:
         lines.append(line(f"{r['level'] * 100:.1f}%", r, f" ({r['k_pca']})", f" ({r['k_filter']})"))
     lines.append(line("**mean**", result["mean"]))
     m = result["mean"]
+    open_note = (f" Sign agreement over closed, consistently wound meshes only (not: "
+                 f"{', '.join(result['open_shapes'])})." if result.get("open_shapes") else "")
     lines += ["", f"CD x1e-5, P2S x1e-3; {result['points']} points per shape, {result['iterations']} iterations; "
-              f"shapes: {', '.join(result['shapes'])}.",
+              f"shapes: {', '.join(result['shapes'])}.{open_note}",
               f"Ratios (mean): MSAE ours/PCA = {m['msae_ours'] / m['msae_pca']:.3f}; "
               f"CD ours/noisy = {m['cd_ours'] / m['cd_noisy']:.3f}; CD ours/filter = {m['cd_ours'] / m['cd_filter']:.3f}"]
     return "\n".join(lines)
