@@ -361,10 +361,10 @@ def main(argv=None):
         flag = "--" + field.name.replace("_", "-")
         if field.type == "bool":
             parser.add_argument(flag, type=lambda s: s.lower() in ("1", "true", "yes"), default=None,
-                                metavar="BOOL")
+                                metavar="BOOL", help=f"default {field.default}")
         else:
             kind = {"int": int, "float": float}.get(field.type, str)
-            parser.add_argument(flag, type=kind, default=None)
+            parser.add_argument(flag, type=kind, default=None, help=f"default {field.default!r}")
     args = parser.parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)
