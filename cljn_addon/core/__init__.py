@@ -5,12 +5,8 @@ and the user-facing errors. Submodules: config, patches, model, losses, data, tr
 infer, refine, orient, metrics, baselines, shapes, meshio, pointio, evaluate.
 """
 from .errors import Cancelled, InputError, ModelMismatchError, ModelNotFoundError
+from .infer import DenoiseResult, denoise, estimate_normals
 from .model import CLJNNet, build_model, load_model, save_model
-
-try:
-    from .infer import DenoiseResult, denoise, estimate_normals
-except ImportError:  # pragma: no cover - only while the engine is being assembled
-    pass
 
 __all__ = ["Cancelled", "InputError", "ModelMismatchError", "ModelNotFoundError", "CLJNNet",
            "build_model", "load_model", "save_model", "DenoiseResult", "denoise", "estimate_normals"]
