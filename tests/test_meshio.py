@@ -62,3 +62,13 @@ def test_shared_meshes_read_and_are_closed_solids():
         v, f = read_mesh(path)
         assert len(f) > 0 and np.isfinite(v).all(), path
         assert abs(signed_volume(v, f)) > 0, path
+
+
+def test_ply_mesh_with_a_quad(tmp_path):
+    path = tmp_path / "quad.ply"
+    path.write_text("ply\nformat ascii 1.0\nelement vertex 4\nproperty float x\nproperty float y\n"
+                    "property float z\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n"
+                    "0 0 0\n1 0 0\n1 1 0\n0 1 0\n4 0 1 2 3\n")
+    v, f = read_mesh(path)
+    assert np.array_equal(v[2], [1, 1, 0])
+    assert f.tolist() == [[0, 1, 2], [0, 2, 3]]

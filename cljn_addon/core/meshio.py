@@ -92,12 +92,13 @@ def read_ply_mesh(path):
     from .pointio import read_ply  # the project's one PLY reader
 
     cloud = read_ply(path)
-    faces = cloud.get("faces") if isinstance(cloud, dict) else getattr(cloud, "faces", None)
-    points = cloud["points"] if isinstance(cloud, dict) else cloud.points
+    faces = cloud.faces
     if faces is None or len(faces) == 0:
         raise InputError(f"{path}: PLY has no faces (a mesh is needed here)")
-    faces = _fan(faces) if not isinstance(faces, np.ndarray) or faces.ndim != 2 or faces.shape[1] != 3 else faces
-    return np.asarray(points, np.float64), _check_faces(path, points, np.asarray(faces, np.int64))
+    if not (isinstance(faces, np.ndarray) and faces.ndim == 2 and faces.shape[1] == 3):
+        faces = _fan(faces)                      # polygons of other sizes
+    points = np.asarray(cloud.points, np.float64)
+    return points, _check_faces(path, points, np.asarray(faces, np.int64))
 
 
 def _check_faces(path, vertices, faces):

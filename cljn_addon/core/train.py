@@ -169,8 +169,8 @@ def train_model(sources, out_dir, config: TrainConfig | None = None, *, resume=F
     if resume and ckpt_path.exists():
         state = torch.load(ckpt_path, map_location="cpu", weights_only=True)
         saved = json.loads(state["train_config"])
-        if saved != {**saved, **dataclasses.asdict(cfg)} or saved.keys() != dataclasses.asdict(cfg).keys():
-            log("resuming with the checkpoint's training settings")
+        if saved != dataclasses.asdict(cfg):
+            log("resuming with the checkpoint's training settings, not the ones given")
         cfg = TrainConfig(**saved)
         model_cfg = get_preset(cfg.preset)
     elif resume:
