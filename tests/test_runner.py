@@ -31,15 +31,6 @@ def cli(*args, cwd=None, timeout=240):
 
 
 @pytest.fixture(scope="module")
-def model_path(tmp_path_factory):
-    from cljn_addon import core
-
-    path = tmp_path_factory.mktemp("model") / "tiny.safetensors"
-    core.save_model(core.build_model("tiny"), path)
-    return path
-
-
-@pytest.fixture(scope="module")
 def torus():
     from cljn_addon.core import shapes
 

@@ -120,15 +120,6 @@ def sha(path):
 
 
 @pytest.fixture(scope="module")
-def model_path(tmp_path_factory):
-    from cljn_addon import core
-
-    path = tmp_path_factory.mktemp("model") / "tiny.safetensors"
-    core.save_model(core.build_model("tiny"), path)
-    return path
-
-
-@pytest.fixture(scope="module")
 def scenes(tmp_path_factory):
     folder = tmp_path_factory.mktemp("scenes")
     scene, plain = folder / "scene.blend", folder / "nocloud.blend"
