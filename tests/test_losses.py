@@ -5,7 +5,7 @@ import numpy as np
 import torch
 
 from cljn_addon.core.config import LossConfig
-from cljn_addon.core.losses import fixed_target_loss, joint_loss, normal_loss, nt_xent
+from cljn_addon.core.losses import fixed_target_loss, joint_loss, normal_loss, nt_xent, squared_angle_loss
 
 
 def brute_force_nt_xent(zp, zq, tau):
@@ -95,3 +95,41 @@ def test_fixed_target_loss():
                                     torch.tensor([[0, -1.0, 0]]), cfg)
     assert abs(parts["pos"] - 0.01) < 1e-7 and parts["normal"] == 0.0
     assert abs(loss.item() - cfg.alpha * 0.01) < 1e-7
+
+
+def test_squared_angle_loss_is_msae_sign_ignored():
+    theta = torch.tensor([0.0, 0.3, math.pi / 2, math.pi - 0.3, math.pi], dtype=torch.float64)
+    values = squared_angle_loss(torch.cos(theta))
+    expected = torch.tensor([0.0, 0.09, (math.pi / 2) ** 2, 0.09, 0.0], dtype=torch.float64)
+    assert torch.allclose(values, expected, atol=1e-5)
+
+
+def _best_angle(loss_of_cos):
+    """Angle from face A (normal x) towards face B (normal y) minimising the loss of a point
+    that belongs to either face with equal chance."""
+    phi = torch.linspace(0.0, math.pi / 2, 901, dtype=torch.float64)
+    expected = 0.5 * loss_of_cos(torch.cos(phi)) + 0.5 * loss_of_cos(torch.sin(phi))
+    return float(phi[expected.argmin()])
+
+
+def test_squared_angle_blends_an_ambiguous_edge_where_the_paper_loss_picks_a_side():
+    assert abs(_best_angle(squared_angle_loss) - math.pi / 4) < 1e-3
+    paper_choice = _best_angle(lambda c: normal_loss(c, LossConfig()))
+    assert min(paper_choice, math.pi / 2 - paper_choice) < 1e-3
+
+
+def test_joint_loss_normal_target_override_and_kind():
+    gt = torch.tensor([[[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]]])
+    gt_n = torch.tensor([[[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]]])
+    pred = torch.zeros(1, 3)
+    tilted = torch.tensor([[0.0, math.sin(0.2), math.cos(0.2)]])
+    nearest = joint_loss(pred, tilted, gt, gt_n, normal_loss_kind="squared_angle")[1]["normal"]
+    assert abs(nearest - 0.04) < 1e-5
+    own = joint_loss(pred, tilted, gt, gt_n, normal_target=tilted, normal_loss_kind="squared_angle")[1]["normal"]
+    assert own < 1e-5
+    try:
+        joint_loss(pred, tilted, gt, gt_n, normal_loss_kind="nope")
+    except ValueError as exc:
+        assert "nope" in str(exc)
+    else:
+        raise AssertionError("unknown normal loss accepted")

@@ -82,3 +82,32 @@ def test_interrupted_run_resumes_from_its_checkpoint(tmp_path):
     a, b = load_model(straight).state_dict(), load_model(resumed).state_dict()
     for key in a:
         assert torch.allclose(a[key].float(), b[key].float(), atol=1e-5), key
+
+
+def test_index_target_squared_angle_run_trains_and_is_recorded(tmp_path):
+    """The MSAE-aligned stage-2 variant: the held-out normal error falls and the card says so."""
+    from cljn_addon.core import build_model
+    from cljn_addon.core.data import load_clean_cloud, make_training_shape, regression_batch
+    from cljn_addon.core.losses import squared_angle_loss
+
+    shapes = [make_training_shape(s, *load_clean_cloud(s, 3000, 99), 64, 0.05, 123) for s in SHAPES]
+    patches, _, _, _, index_normals = regression_batch(shapes, 512, 128, np.random.default_rng(7))
+
+    def held_out_msae(model):
+        with torch.no_grad():
+            _, normal = model.eval()(torch.from_numpy(patches))
+        return squared_angle_loss((normal * torch.from_numpy(index_normals)).sum(dim=1)).mean().item()
+
+    torch.manual_seed(0)
+    untrained = build_model("tiny")
+    run = dict(TINY_RUN, contrastive_epochs=0, normal_target="index", normal_loss="squared_angle")
+    weights = train_model(SHAPES, tmp_path / "run", cache_dir=None, **run)
+    assert held_out_msae(load_model(weights)) < 0.8 * held_out_msae(untrained)
+    assert "normal target index, normal loss squared_angle" in (tmp_path / "run" / "MODEL_CARD.md").read_text()
+
+
+def test_unknown_normal_target_is_refused(tmp_path):
+    from cljn_addon.core import InputError
+
+    with pytest.raises(InputError, match="normal target"):
+        train_model(SHAPES, tmp_path / "run", cache_dir=None, **dict(TINY_RUN, normal_target="furthest"))

@@ -25,20 +25,44 @@ def normal_loss(cos: torch.Tensor, cfg: LossConfig) -> torch.Tensor:
     return 1.0 - (cfg.delta * cos ** 2 + (1.0 - cfg.delta) * cos ** cfg.gamma)
 
 
-def joint_loss(pred_points, pred_normals, gt_points, gt_normals, cfg: LossConfig = LossConfig()):
+def squared_angle_loss(cos: torch.Tensor) -> torch.Tensor:
+    """theta^2 with theta = arccos|cos|: the evaluation's MSAE itself, sign ignored.
+
+    Unlike the paper's loss (whose cos^12 term rewards committing to one side of an edge),
+    its minimiser for a point that may belong to either face is the angle-weighted blend,
+    which is what minimises the expected MSAE where the side is ambiguous.
+    """
+    c = cos.abs().clamp(max=1.0 - 1e-6)     # arccos' slope is infinite at 1
+    return torch.arccos(c) ** 2
+
+
+NORMAL_LOSSES = ("paper", "squared_angle")
+
+
+def joint_loss(pred_points, pred_normals, gt_points, gt_normals, cfg: LossConfig = LossConfig(),
+               normal_target=None, normal_loss_kind="paper"):
     """The paper's joint loss, in normalised patch units.
 
     pred_points, pred_normals: (B, 3); gt_points, gt_normals: (B, m, 3), the clean points of
     the same ball in the same frame (padding by repetition changes neither min nor max).
-    Returns (loss, parts) where parts holds the batch means of each term.
+    normal_target: optional (B, 3) normals to use instead of the paper's n(g*) (the clean
+    point nearest the prediction), e.g. the normal of the clean point the noisy centre was
+    made from, which is what MSAE compares against. normal_loss_kind: 'paper' or
+    'squared_angle'. Returns (loss, parts) where parts holds the batch means of each term.
     """
     d2 = ((pred_points[:, None, :] - gt_points) ** 2).sum(dim=2)          # (B, m)
     l1_pos, nearest = d2.min(dim=1)
     l2_pos = d2.max(dim=1).values
     l_pos = (1.0 - cfg.beta) * l1_pos + cfg.beta * l2_pos
-    n_star = torch.gather(gt_normals, 1, nearest[:, None, None].expand(-1, 1, 3))[:, 0]
-    cos = (pred_normals * n_star).sum(dim=1)
-    l_normal = normal_loss(cos, cfg)
+    if normal_target is None:
+        normal_target = torch.gather(gt_normals, 1, nearest[:, None, None].expand(-1, 1, 3))[:, 0]
+    cos = (pred_normals * normal_target).sum(dim=1)
+    if normal_loss_kind == "paper":
+        l_normal = normal_loss(cos, cfg)
+    elif normal_loss_kind == "squared_angle":
+        l_normal = squared_angle_loss(cos)
+    else:
+        raise ValueError(f"unknown normal loss {normal_loss_kind!r}; choose one of {', '.join(NORMAL_LOSSES)}")
     loss = cfg.alpha * l_pos + (1.0 - cfg.alpha) * l_normal
     parts = {"pos": l_pos.mean().item(), "normal": l_normal.mean().item(),
              "l1pos": l1_pos.mean().item(), "l2pos": l2_pos.mean().item()}

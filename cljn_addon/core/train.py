@@ -24,7 +24,7 @@ from .config import TRAIN_NOISE_LEVELS, LossConfig, get_preset
 from .data import contrastive_batch, load_clean_cloud, make_training_shape, regression_batch
 from .device import autocast, pick_device
 from .errors import Cancelled, InputError
-from .losses import fixed_target_loss, joint_loss, nt_xent
+from .losses import NORMAL_LOSSES, fixed_target_loss, joint_loss, nt_xent
 from .meshio import find_meshes
 from .model import build_model, save_model
 
@@ -52,6 +52,8 @@ class TrainConfig:
     momentum: float = 0.9
     finetune_encoder: bool = False          # paper: encoder frozen in stage 2
     loss: str = "joint"                     # or "fixed" (the ablation)
+    normal_target: str = "nearest"          # paper: clean point nearest the prediction; or "index"
+    normal_loss: str = "paper"              # paper: 1 - d cos^2 - (1-d) cos^g; or "squared_angle"
     gt_points: int = 256                    # clean points per ground-truth patch
     seed: int = 0
     init_weights: str = ""                  # start from a trained model (e.g. to fine-tune further)
@@ -156,6 +158,10 @@ def train_model(sources, out_dir, config: TrainConfig | None = None, *, resume=F
         base.update(QUICK)
     base.update(overrides)
     cfg = TrainConfig(**base)
+    if cfg.normal_target not in ("nearest", "index"):
+        raise InputError(f"unknown normal target {cfg.normal_target!r} (nearest or index)")
+    if cfg.normal_loss not in NORMAL_LOSSES:
+        raise InputError(f"unknown normal loss {cfg.normal_loss!r} ({' or '.join(NORMAL_LOSSES)})")
     if not sources:
         raise InputError("no training meshes given")
     out = Path(out_dir)
@@ -252,8 +258,11 @@ def train_model(sources, out_dir, config: TrainConfig | None = None, *, resume=F
                 disp = out6[:, :3]
                 normal = torch.nn.functional.normalize(out6[:, 3:], dim=1, eps=1e-8)
                 if cfg.loss == "joint":
+                    # "index": the normal of the clean point this noisy centre was made from.
+                    index_normal = torch.from_numpy(tgt_n).to(device) if cfg.normal_target == "index" else None
                     loss, parts = joint_loss(disp, normal, torch.from_numpy(gt).to(device),
-                                             torch.from_numpy(gt_n).to(device), loss_cfg)
+                                             torch.from_numpy(gt_n).to(device), loss_cfg,
+                                             normal_target=index_normal, normal_loss_kind=cfg.normal_loss)
                 else:
                     loss, parts = fixed_target_loss(disp, normal, torch.from_numpy(tgt).to(device),
                                                     torch.from_numpy(tgt_n).to(device), loss_cfg)
@@ -327,7 +336,8 @@ def write_model_card(path, card, validation_table=None):
         f"{cfg['contrastive_lr']}, weight decay {cfg['weight_decay']}, cosine decay, NT-Xent tau 0.01",
         f"- Stage 2 (regressor, {cfg['loss']} loss): {card['regression_steps']} steps of {cfg['regression_batch']} "
         f"patches ({cfg['regression_epochs']} epochs), {cfg['regression_optimizer']} lr {cfg['regression_lr']}, "
-        f"encoder {'fine-tuned' if cfg['finetune_encoder'] else 'frozen (paper)'}",
+        f"encoder {'fine-tuned' if cfg['finetune_encoder'] else 'frozen (paper)'}, normal target "
+        f"{cfg.get('normal_target', 'nearest')}, normal loss {cfg.get('normal_loss', 'paper')}",
         f"- Wall time: {card['wall_seconds'] / 60:.1f} min on {os.cpu_count()} CPU cores, bf16 autocast: {cfg['bf16']}",
         f"- Seed: {cfg['seed']}", "",
     ]
