@@ -1,5 +1,6 @@
 """Metrics against hand-computed values."""
 import numpy as np
+from scipy.spatial import cKDTree
 
 from cljn_addon.core import metrics
 from cljn_addon.core.baselines import pca_normals, pca_projection_filter
@@ -52,3 +53,24 @@ def test_outward_truth_only_for_closed_consistent_meshes():
     flipped[0] = flipped[0, ::-1]
     assert not is_closed_and_consistent(flipped)
     assert not is_closed_and_consistent(faces[1:])          # a hole
+
+
+def test_msae_floor_normals_blend_at_an_edge_and_beat_committing_to_a_face():
+    v, f = shape_mesh("box")
+    sigma = 0.02
+    noisy, clean, truth = sample_shape("box", 6000, noise=sigma, seed=3)
+    floor = metrics.msae_floor_normals(noisy, v, f, sigma)
+    # A point on an edge, far from the corners: the best guess is halfway between the faces.
+    half = v.max(axis=0)
+    on_edge = np.array([[half[0], half[1], 0.0]])
+    n = metrics.msae_floor_normals(on_edge, v, f, sigma)[0]
+    assert abs(abs(n[0]) - abs(n[1])) < 0.05 and abs(n[2]) < 0.05
+    # Face centres: the face normal itself.
+    centre = metrics.msae_floor_normals(np.array([[0.0, 0.0, half[2]]]), v, f, sigma)[0]
+    assert abs(abs(centre[2]) - 1.0) < 1e-6
+    # The floor beats the normal of the nearest surface point (committing to the likelier
+    # face) and the best PCA normals on the same cloud.
+    nearest_face = truth[cKDTree(clean).query(noisy)[1]]
+    floor_msae = metrics.msae(floor, truth)
+    assert floor_msae < metrics.msae(nearest_face, truth)
+    assert floor_msae < min(metrics.msae(pca_normals(noisy, k), truth) for k in (20, 40, 80))
