@@ -36,7 +36,8 @@ def squared_angle_loss(cos: torch.Tensor) -> torch.Tensor:
     return torch.arccos(c) ** 2
 
 
-NORMAL_LOSSES = ("paper", "squared_angle")
+# The stage-2 normal terms by name: f(cos, LossConfig) -> per-sample loss.
+NORMAL_LOSSES = {"paper": normal_loss, "squared_angle": lambda cos, cfg: squared_angle_loss(cos)}
 
 
 def joint_loss(pred_points, pred_normals, gt_points, gt_normals, cfg: LossConfig = LossConfig(),
@@ -57,12 +58,9 @@ def joint_loss(pred_points, pred_normals, gt_points, gt_normals, cfg: LossConfig
     if normal_target is None:
         normal_target = torch.gather(gt_normals, 1, nearest[:, None, None].expand(-1, 1, 3))[:, 0]
     cos = (pred_normals * normal_target).sum(dim=1)
-    if normal_loss_kind == "paper":
-        l_normal = normal_loss(cos, cfg)
-    elif normal_loss_kind == "squared_angle":
-        l_normal = squared_angle_loss(cos)
-    else:
+    if normal_loss_kind not in NORMAL_LOSSES:
         raise ValueError(f"unknown normal loss {normal_loss_kind!r}; choose one of {', '.join(NORMAL_LOSSES)}")
+    l_normal = NORMAL_LOSSES[normal_loss_kind](cos, cfg)
     loss = cfg.alpha * l_pos + (1.0 - cfg.alpha) * l_normal
     parts = {"pos": l_pos.mean().item(), "normal": l_normal.mean().item(),
              "l1pos": l1_pos.mean().item(), "l2pos": l2_pos.mean().item()}

@@ -138,7 +138,7 @@ def msae_floor_normals(noisy, vertices, faces, sigma, k=400, steps=8, chunk=1000
         for _ in range(steps):
             c = np.einsum("mc,mkc->mk", n, nb)
             aligned = nb * np.where(c < 0, -1.0, 1.0)[..., None]
-            c = np.clip(np.abs(c), -1.0, 1.0)
+            c = np.minimum(np.abs(c), 1.0)
             theta = np.arccos(c)
             tangent = aligned - c[..., None] * n[:, None, :]                # length sin(theta)
             scale = np.where(theta > 1e-7, theta / np.maximum(np.sin(theta), 1e-12), 1.0)
@@ -148,4 +148,3 @@ def msae_floor_normals(noisy, vertices, faces, sigma, k=400, steps=8, chunk=1000
             n /= np.linalg.norm(n, axis=1, keepdims=True)
         out[s:s + chunk] = n
     return out
-
