@@ -41,10 +41,10 @@ ALL_SUFFIXES = POINT_SUFFIXES + (BLEND_SUFFIX,)
 
 # Commands implemented in the engine; each module has main(argv) -> exit code and its own --help.
 DISPATCH = {
-    "train": ("cljn_addon.core.train", "train a model (contrastive pretraining, then the regressor)"),
-    "eval": ("cljn_addon.core.evaluate", "evaluate a model on test shapes (normal error, Chamfer)"),
-    "demo": ("cljn_addon.core.demo", "denoise built-in noisy shapes and write before/after files"),
-    "bench": ("cljn_addon.core.benchmark", "time the engine on this machine"),
+    "train": ("cljn_addon.core.training.train", "train a model (contrastive pretraining, then the regressor)"),
+    "eval": ("cljn_addon.cli.evaluate", "evaluate a model on test shapes (normal error, Chamfer)"),
+    "demo": ("cljn_addon.core.evaluation.demo", "denoise built-in noisy shapes and write before/after files"),
+    "bench": ("cljn_addon.core.evaluation.benchmark", "time the engine on this machine"),
 }
 
 EPILOG = """\
@@ -643,7 +643,7 @@ class CloudCommand:
     def _run_points(self, job):
         import numpy as np
 
-        from .core import pointio
+        from .core.formats import points as pointio
 
         cloud = pointio.read_points(job.input)
         points = pointio.check_points(cloud.points, str(job.input))
@@ -707,7 +707,7 @@ class CloudCommand:
 
     def _backup(self, path: Path):
         """Copy each file about to be replaced to its backup name (atomically)."""
-        from .core.pointio import atomic_paths
+        from .core.formats.points import atomic_paths
 
         for target in _outputs_of(path):
             if target.exists():
@@ -719,7 +719,7 @@ class CloudCommand:
     def _run_blend(self, job):
         import numpy as np
 
-        from .core import pointio
+        from .core.formats import points as pointio
 
         bpy = _import_bpy()
         from .blender import object_io
@@ -797,7 +797,7 @@ class CloudCommand:
         a = self.args
         if not a.report:
             return
-        from .core.pointio import atomic_paths
+        from .core.formats.points import atomic_paths
 
         report = {
             "command": a.command,
@@ -903,7 +903,7 @@ def _quiet_stdout():
 
 def _save_blend(bpy, target: Path):
     """Save a copy of the open file to `target` atomically (temporary .blend, then replace)."""
-    from .core.pointio import atomic_paths
+    from .core.formats.points import atomic_paths
 
     with atomic_paths(target) as (tmp,):
         tmp.unlink()                      # Blender writes it; an existing file would be backed up
@@ -950,7 +950,7 @@ def render_preview(item: PreviewItem, target: Path, color_by="normal", title="de
     Cycles on the CPU (works headless, in the bpy wheel and in `blender -b`)."""
     import numpy as np
 
-    from .core.pointio import atomic_paths
+    from .core.formats.points import atomic_paths
 
     bpy = _import_bpy()
     with _quiet_stdout():

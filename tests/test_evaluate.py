@@ -3,8 +3,8 @@ import numpy as np
 import torch
 
 from cljn_addon.core import build_model
-from cljn_addon.core.evaluate import evaluate, format_table
-from cljn_addon.core.shapes import shape_mesh
+from cljn_addon.core.evaluation.evaluate import evaluate, format_table
+from cljn_addon.core.evaluation.shapes import shape_mesh
 
 
 def test_evaluate_reports_a_floor_no_method_beats():

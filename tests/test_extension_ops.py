@@ -26,9 +26,9 @@ def test_denoise_points_with_the_shipped_model(bx):
     import numpy as np
 
     core = bx.core
-    metrics = __import__(bx.package + ".core.metrics", fromlist=["metrics"])
-    shapes = __import__(bx.package + ".core.shapes", fromlist=["shapes"])
-    baselines = __import__(bx.package + ".core.baselines", fromlist=["baselines"])
+    metrics = __import__(bx.package + ".core.evaluation.metrics", fromlist=["metrics"])
+    shapes = __import__(bx.package + ".core.evaluation.shapes", fromlist=["shapes"])
+    baselines = __import__(bx.package + ".core.evaluation.baselines", fromlist=["baselines"])
     bx.clear_scene()
     # A sharp CAD shape; the shipped model does not yet beat tuned PCA on every shape
     # (see its MODEL_CARD.md), so this checks the glue on one where it does.
@@ -71,7 +71,7 @@ def test_denoise_writes_every_attribute_in_object_space(bx):
     import bpy
     import numpy as np
 
-    shapes = __import__(bx.package + ".core.shapes", fromlist=["shapes"])
+    shapes = __import__(bx.package + ".core.evaluation.shapes", fromlist=["shapes"])
     bx.clear_scene()
     noisy, _, _ = shapes.sample_shape("box", 1500, noise=0.01, seed=1)
     obj = bx.make_cloud(noisy, "Box", kind="POINTCLOUD", matrix=MATRIX)
@@ -114,7 +114,7 @@ def test_estimate_normals_leaves_positions_bit_identical(bx):
     import bpy
     import numpy as np
 
-    shapes = __import__(bx.package + ".core.shapes", fromlist=["shapes"])
+    shapes = __import__(bx.package + ".core.evaluation.shapes", fromlist=["shapes"])
     bx.clear_scene()
     noisy, _, _ = shapes.sample_shape("torus", 1500, noise=0.005, seed=2)
     obj = bx.make_cloud(noisy, "Torus", matrix=MATRIX)
@@ -241,7 +241,7 @@ def test_ply_export_carries_our_normals_and_ply_import_then_denoise(bx):
     import bpy
     import numpy as np
 
-    shapes = __import__(bx.package + ".core.shapes", fromlist=["shapes"])
+    shapes = __import__(bx.package + ".core.evaluation.shapes", fromlist=["shapes"])
     bx.clear_scene()
     bx.use_model_file()
     bx.settings.iterations = 1
@@ -308,7 +308,7 @@ def test_worker_job_cancel_leaves_object_unchanged(bx):
     import numpy as np
     import pytest
 
-    shapes = __import__(bx.package + ".core.shapes", fromlist=["shapes"])
+    shapes = __import__(bx.package + ".core.evaluation.shapes", fromlist=["shapes"])
     ops, object_io, core = bx.operators, bx.object_io, bx.core
     bx.clear_scene()
     noisy, _, _ = shapes.sample_shape("box", 3000, noise=0.01, seed=5)
@@ -387,7 +387,7 @@ def test_modal_run_updates_progress_and_esc_cancels(bx):
     import numpy as np
 
     ops = bx.operators
-    shapes = __import__(bx.package + ".core.shapes", fromlist=["shapes"])
+    shapes = __import__(bx.package + ".core.evaluation.shapes", fromlist=["shapes"])
     bx.clear_scene()
     bx.use_model_file()
     noisy, _, _ = shapes.sample_shape("box", 3000, noise=0.01, seed=6)

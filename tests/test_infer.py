@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from cljn_addon.core import Cancelled, InputError, build_model, denoise, estimate_normals
-from cljn_addon.core.shapes import sample_shape
+from cljn_addon.core.evaluation.shapes import sample_shape
 
 
 @pytest.fixture(scope="module")

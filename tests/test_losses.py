@@ -5,7 +5,7 @@ import numpy as np
 import torch
 
 from cljn_addon.core.config import LossConfig
-from cljn_addon.core.losses import fixed_target_loss, joint_loss, normal_loss, nt_xent, squared_angle_loss
+from cljn_addon.core.training.losses import fixed_target_loss, joint_loss, normal_loss, nt_xent, squared_angle_loss
 
 
 def brute_force_nt_xent(zp, zq, tau):

@@ -2,9 +2,9 @@
 import numpy as np
 from scipy.spatial import cKDTree
 
-from cljn_addon.core import metrics
-from cljn_addon.core.baselines import pca_normals, pca_projection_filter
-from cljn_addon.core.shapes import sample_shape, shape_mesh
+from cljn_addon.core.evaluation import metrics
+from cljn_addon.core.evaluation.baselines import pca_normals, pca_projection_filter
+from cljn_addon.core.evaluation.shapes import sample_shape, shape_mesh
 
 
 def test_msae_ignores_sign_and_squares_radians():
@@ -46,7 +46,7 @@ def test_classic_baselines_beat_the_noisy_input():
 
 
 def test_outward_truth_only_for_closed_consistent_meshes():
-    from cljn_addon.core.evaluate import is_closed_and_consistent
+    from cljn_addon.core.evaluation.evaluate import is_closed_and_consistent
     _, faces = shape_mesh("box")
     assert is_closed_and_consistent(faces)
     flipped = faces.copy()

@@ -4,9 +4,9 @@ import struct
 import numpy as np
 import pytest
 
-from cljn_addon.core import pointio
+from cljn_addon.core.formats import points as pointio
 from cljn_addon.core.errors import InputError
-from cljn_addon.core.pointio import PointCloud
+from cljn_addon.core.formats.points import PointCloud
 
 
 def _cloud(n=50, dtype=np.float32, seed=0):

@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 
 from cljn_addon import runner
-from cljn_addon.core import pointio
-from cljn_addon.core.pointio import PointCloud
+from cljn_addon.core.formats import points as pointio
+from cljn_addon.core.formats.points import PointCloud
 
 ROOT = Path(__file__).resolve().parents[1]
 RUN = ROOT / "standalone" / "run.py"
@@ -32,7 +32,7 @@ def cli(*args, cwd=None, timeout=240):
 
 @pytest.fixture(scope="module")
 def torus():
-    from cljn_addon.core import shapes
+    from cljn_addon.core.evaluation import shapes
 
     noisy, _clean, _normals = shapes.sample_shape("torus", N, noise=0.01, seed=3)
     return noisy

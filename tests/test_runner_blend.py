@@ -15,8 +15,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cljn_addon.core import pointio
-from cljn_addon.core.pointio import PointCloud
+from cljn_addon.core.formats import points as pointio
+from cljn_addon.core.formats.points import PointCloud
 
 pytestmark = pytest.mark.skipif(importlib.util.find_spec("bpy") is None,
                                 reason="needs the bpy module (pip install bpy==5.0.1)")
@@ -30,7 +30,7 @@ MAKE_SCENE = textwrap.dedent("""
     import numpy as np
     import bpy
     sys.path.insert(0, {root!r})
-    from cljn_addon.core import shapes
+    from cljn_addon.core.evaluation import shapes
 
     bpy.ops.wm.read_factory_settings(use_empty=True)
     scene = bpy.context.scene
@@ -197,7 +197,7 @@ def test_blend_errors(tmp_path, model_path, scenes):
     garbage = tmp_path / "garbage.blend"
     garbage.write_bytes(b"BLENDER-v999 this is not a real file")
     good = tmp_path / "good.npy"
-    from cljn_addon.core import shapes
+    from cljn_addon.core.evaluation import shapes
 
     np.save(good, shapes.sample_shape("sphere", N, noise=0.01)[0])
     out_dir = tmp_path / "out"
@@ -221,7 +221,7 @@ def test_blend_errors(tmp_path, model_path, scenes):
 
 
 def test_ply_to_blend_and_preview_by_displacement(tmp_path, model_path):
-    from cljn_addon.core import shapes
+    from cljn_addon.core.evaluation import shapes
 
     pts = shapes.sample_shape("box", N, noise=0.01, seed=2)[0].astype(np.float32)
     red = np.arange(N, dtype=np.uint8)

@@ -7,8 +7,8 @@ import pytest
 import torch
 
 from cljn_addon.core import Cancelled, load_model
-from cljn_addon.core.shapes import shape_mesh
-from cljn_addon.core.train import train_model
+from cljn_addon.core.evaluation.shapes import shape_mesh
+from cljn_addon.core.training.train import train_model
 
 TINY_RUN = dict(preset="tiny", points_per_shape=3000, patches_per_shape=384, contrastive_epochs=1,
                 contrastive_batch=64, regression_epochs=3, regression_batch=64,
@@ -23,8 +23,8 @@ def read_log(folder):
 
 def held_out_joint_loss(model):
     """Joint loss on a fixed batch from fresh noise variants of the training shapes."""
-    from cljn_addon.core.data import load_clean_cloud, make_training_shape, regression_batch
-    from cljn_addon.core.losses import joint_loss
+    from cljn_addon.core.training.data import load_clean_cloud, make_training_shape, regression_batch
+    from cljn_addon.core.training.losses import joint_loss
 
     shapes = [make_training_shape(s, *load_clean_cloud(s, 3000, 99), 64, 0.05, 123) for s in SHAPES]
     patches, gt, gt_n, _, _ = regression_batch(shapes, 512, 128, np.random.default_rng(7))
@@ -87,8 +87,8 @@ def test_interrupted_run_resumes_from_its_checkpoint(tmp_path):
 def test_index_target_squared_angle_run_trains_and_is_recorded(tmp_path):
     """The MSAE-aligned stage-2 variant: the held-out normal error falls and the card says so."""
     from cljn_addon.core import build_model
-    from cljn_addon.core.data import load_clean_cloud, make_training_shape, regression_batch
-    from cljn_addon.core.losses import squared_angle_loss
+    from cljn_addon.core.training.data import load_clean_cloud, make_training_shape, regression_batch
+    from cljn_addon.core.training.losses import squared_angle_loss
 
     shapes = [make_training_shape(s, *load_clean_cloud(s, 3000, 99), 64, 0.05, 123) for s in SHAPES]
     patches, _, _, _, index_normals = regression_batch(shapes, 512, 128, np.random.default_rng(7))

@@ -440,7 +440,7 @@ class CLJN_OT_train_model(_JobOperator, bpy.types.Operator):
         preset = self.preset
 
         def work(progress, cancel):
-            from ..core import train
+            from ..core.training import train
 
             progress(0.0, "sampling the meshes")
             return train.train_model(sources, out_dir, preset=preset, quick=True,

@@ -85,6 +85,10 @@ class LossConfig:
 
 ROTATION_ANGLES_DEG = (0, 15, 30, 45, 60, 90, 105, 120, 135, 150, 180)
 TRAIN_NOISE_LEVELS = (0.0, 0.0025, 0.005, 0.01, 0.015, 0.025)   # fraction of the bbox diagonal
+# Ours: the same range covered evenly, so low noise (where moving too much hurts) is as
+# present in training as high noise.
+TRAIN_NOISE_LEVELS_DENSE = (0.0, 0.0025, 0.005, 0.0075, 0.01, 0.0125, 0.015, 0.02, 0.025)
+NOISE_LEVEL_SETS = {"paper": TRAIN_NOISE_LEVELS, "dense": TRAIN_NOISE_LEVELS_DENSE}
 TEST_NOISE_LEVELS = (0.006, 0.008, 0.011, 0.015, 0.020)
 INFLATION_NEIGHBOURS = 100
 LRMA_NEIGHBOURS = 20

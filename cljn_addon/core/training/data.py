@@ -12,10 +12,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .config import ROTATION_ANGLES_DEG, TRAIN_NOISE_LEVELS
-from .meshio import read_mesh
-from .patches import PatchSource, bbox_diagonal, pca_frames, to_frame
-from .shapes import normalise_unit_diagonal, sample_mesh, shape_mesh
+from ..config import ROTATION_ANGLES_DEG, TRAIN_NOISE_LEVELS
+from ..formats.meshes import read_mesh
+from ..patches import PatchSource, bbox_diagonal, pca_frames, to_frame
+from ..evaluation.shapes import normalise_unit_diagonal, sample_mesh, shape_mesh, thin_training_shape
 
 
 @dataclass
@@ -37,7 +37,8 @@ def _cache_key(source: str, n_points: int, seed: int) -> str:
 
 
 def load_clean_cloud(source, n_points, seed, cache_dir=None):
-    """Clean samples of a mesh file, a named synthetic shape ("shape:box") or (V, F) arrays.
+    """Clean samples of a mesh file, a named synthetic shape ("shape:box"), the i-th member
+    of the thin-part family ("thin:3") or (V, F) arrays.
 
     Samples of mesh files are cached as .npz under cache_dir (outside git).
     """
@@ -47,6 +48,8 @@ def load_clean_cloud(source, n_points, seed, cache_dir=None):
     if source.startswith("shape:"):
         v, f = shape_mesh(source[len("shape:"):])
         return sample_clean(v, f, n_points, seed)
+    if source.startswith("thin:"):
+        return sample_clean(*thin_training_shape(int(source[len("thin:"):])), n_points, seed)
     cache = None
     if cache_dir is not None:
         stat = Path(source).stat()

@@ -9,11 +9,11 @@ from pathlib import Path
 import numpy as np
 
 from .baselines import pca_normals
-from .errors import ModelMismatchError, ModelNotFoundError
-from .infer import denoise
+from ..errors import ModelMismatchError, ModelNotFoundError
+from ..infer import denoise
 from .metrics import MeshDistance, chamfer, msae, sharp_feature_mask, sign_agreement
-from .model import load_model
-from .pointio import PointCloud, write_ply
+from ..model import load_model
+from ..formats.points import PointCloud, write_ply
 from .shapes import sample_shape, shape_mesh
 
 

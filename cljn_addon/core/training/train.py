@@ -20,13 +20,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .config import TRAIN_NOISE_LEVELS, LossConfig, get_preset
+from ..config import NOISE_LEVEL_SETS, LossConfig, get_preset
 from .data import contrastive_batch, load_clean_cloud, make_training_shape, regression_batch
-from .device import autocast, pick_device
-from .errors import Cancelled, InputError
+from ..device import autocast, pick_device
+from ..errors import Cancelled, InputError
 from .losses import NORMAL_LOSSES, fixed_target_loss, joint_loss, nt_xent
-from .meshio import find_meshes
-from .model import build_model, save_model
+from ..formats.meshes import find_meshes
+from ..model import build_model, save_model
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 DEFAULT_TRAIN_DIR = REPO_ROOT.parent / "shared" / "data" / "meshes" / "train"
@@ -55,6 +55,7 @@ class TrainConfig:
     normal_target: str = "nearest"          # paper: clean point nearest the prediction; or "index"
     normal_loss: str = "paper"              # paper: 1 - d cos^2 - (1-d) cos^g; or "squared_angle"
     gt_points: int = 256                    # clean points per ground-truth patch
+    noise_levels: str = "paper"             # paper: 0, .25, .5, 1, 1.5, 2.5%; or "dense" (9 levels)
     seed: int = 0
     init_weights: str = ""                  # start from a trained model (e.g. to fine-tune further)
     checkpoint_minutes: float = 5.0
@@ -116,11 +117,14 @@ def load_training_shapes(sources, cfg: TrainConfig, model_cfg, cache_dir=DEFAULT
             name = f"mesh{i + 1}"
         elif str(source).startswith("shape:"):
             name = f"{str(source)[6:]} (synthetic)"
+        elif str(source).startswith("thin:"):
+            name = f"thin part {str(source)[5:]} (synthetic)"
         else:
             name = Path(source).stem
         clean, normals = load_clean_cloud(source, cfg.points_per_shape, cfg.seed + i, cache_dir)
         shapes.append(make_training_shape(str(name), clean, normals, model_cfg.points_per_patch,
-                                          model_cfg.patch_radius_fraction, cfg.seed + 1000 + i))
+                                          model_cfg.patch_radius_fraction, cfg.seed + 1000 + i,
+                                          noise_levels=NOISE_LEVEL_SETS[cfg.noise_levels]))
         log(f"  shape {i + 1}/{len(sources)}: {name} ({len(clean)} points)")
     return shapes
 
@@ -162,6 +166,8 @@ def train_model(sources, out_dir, config: TrainConfig | None = None, *, resume=F
         raise InputError(f"unknown normal target {cfg.normal_target!r} (nearest or index)")
     if cfg.normal_loss not in NORMAL_LOSSES:
         raise InputError(f"unknown normal loss {cfg.normal_loss!r} ({' or '.join(NORMAL_LOSSES)})")
+    if cfg.noise_levels not in NOISE_LEVEL_SETS:
+        raise InputError(f"unknown noise levels {cfg.noise_levels!r} ({' or '.join(NOISE_LEVEL_SETS)})")
     if not sources:
         raise InputError("no training meshes given")
     out = Path(out_dir)
@@ -191,7 +197,7 @@ def train_model(sources, out_dir, config: TrainConfig | None = None, *, resume=F
     stage, step, elapsed = "contrastive", 0, 0.0
     rng = np.random.default_rng(cfg.seed)
     if cfg.init_weights and state is None:
-        from .model import load_model
+        from ..model import load_model
         start = load_model(cfg.init_weights)
         if start.config != model_cfg:
             raise InputError(f"{cfg.init_weights} is a {start.config.preset!r} model, not {cfg.preset!r}")
@@ -291,7 +297,7 @@ def train_model(sources, out_dir, config: TrainConfig | None = None, *, resume=F
     model.eval()
     card = {"preset": cfg.preset, "shapes": [s.name for s in shapes], "train_config": dataclasses.asdict(cfg),
             "contrastive_steps": n_contrastive, "regression_steps": n_regression,
-            "wall_seconds": round(wall, 1), "noise_levels": list(TRAIN_NOISE_LEVELS)}
+            "wall_seconds": round(wall, 1), "noise_levels": list(NOISE_LEVEL_SETS[cfg.noise_levels])}
     save_model(model.cpu(), weights, {"training": card})
     (out / "training.json").write_text(json.dumps(card, indent=2))
     table = None
@@ -304,9 +310,9 @@ def train_model(sources, out_dir, config: TrainConfig | None = None, *, resume=F
 
 def validate(weights, mesh_dir, n_points, log=print):
     """The eval command's table on held-out meshes, for the model card."""
-    from .evaluate import evaluate, format_table
-    from .meshio import read_mesh
-    from .model import load_model
+    from ..evaluation.evaluate import evaluate, format_table
+    from ..formats.meshes import read_mesh
+    from ..model import load_model
 
     shapes = [(p.stem, *read_mesh(p)) for p in find_meshes(mesh_dir)]
     log(f"validating on {len(shapes)} meshes from {mesh_dir} ({n_points} points each)")
@@ -361,6 +367,9 @@ def main(argv=None):
     parser.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
     parser.add_argument("--synthetic", nargs="*", default=[], metavar="SHAPE",
                         help="add built-in CAD-like shapes (box, cylinder, star, octahedron, stepped_block, ...)")
+    parser.add_argument("--thin-parts", type=int, default=0, metavar="N",
+                        help="add N procedural thin-part shapes (plates, plate pairs, tubes, open "
+                             "containers, L/T/U/I/Z profiles, gears)")
     parser.add_argument("--quick", action="store_true", help="small schedule (minutes), as Blender's button")
     parser.add_argument("--cache-dir", default=str(DEFAULT_CACHE), help="where sampled clouds are cached")
     parser.add_argument("--threads", type=int, default=None, help="torch CPU threads")
@@ -384,6 +393,7 @@ def main(argv=None):
             path = Path(item)
             sources += [str(p) for p in find_meshes(path)] if path.is_dir() else [str(path)]
         sources += [f"shape:{name}" for name in args.synthetic]
+        sources += [f"thin:{i}" for i in range(args.thin_parts)]
         overrides = {f.name: getattr(args, f.name) for f in dataclasses.fields(TrainConfig)
                      if getattr(args, f.name) is not None}
         train_model(sources, args.out, resume=args.resume, quick=args.quick, show_progress=True,

@@ -7,25 +7,16 @@ neighbourhood sizes are tuned per level and shared by all shapes, as the paper d
 """
 from __future__ import annotations
 
-import argparse
-import json
-import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
 from .baselines import pca_normals, pca_projection_filter
-from .config import TEST_NOISE_LEVELS
-from .errors import InputError, ModelMismatchError, ModelNotFoundError
-from .infer import denoise
-from .meshio import find_meshes, read_mesh
+from ..config import TEST_NOISE_LEVELS
+from ..infer import denoise
 from .metrics import MeshDistance, chamfer, msae, msae_floor_normals, sharp_feature_mask, sign_agreement
-from .model import load_model
-from .shapes import normalise_unit_diagonal, sample_mesh, shape_mesh, signed_volume
+from .shapes import normalise_unit_diagonal, sample_mesh, signed_volume
 
-REPO_ROOT = Path(__file__).resolve().parents[2]
-DEFAULT_VALIDATION_DIR = REPO_ROOT.parent / "shared" / "data" / "meshes" / "validation"
 PCA_K = (10, 20, 40, 60, 100, 150, 200)
 FILTER_K = (20, 40, 60, 100, 150, 200)
 
@@ -138,44 +129,3 @@ def format_table(result) -> str:
               f"floor/PCA = {m['msae_floor'] / m['msae_pca']:.3f}; "
               f"CD ours/noisy = {m['cd_ours'] / m['cd_noisy']:.3f}; CD ours/filter = {m['cd_ours'] / m['cd_filter']:.3f}"]
     return "\n".join(lines)
-
-
-def main(argv=None):
-    parser = argparse.ArgumentParser(prog="run.py eval", description=__doc__.split("\n\n")[0])
-    parser.add_argument("mesh_dir", nargs="?", default=str(DEFAULT_VALIDATION_DIR),
-                        help="folder of closed meshes (.off/.obj/.ply); default: the validation set")
-    parser.add_argument("--model", default=None, help="weights file (default: the shipped model)")
-    parser.add_argument("--points", type=int, default=50_000, help="points sampled per shape")
-    parser.add_argument("--levels", type=float, nargs="+", default=[x * 100 for x in TEST_NOISE_LEVELS],
-                        help="noise sigma in percent of the bbox diagonal")
-    parser.add_argument("--iterations", type=int, default=4)
-    parser.add_argument("--synthetic", nargs="*", default=None, metavar="SHAPE",
-                        help="evaluate built-in shapes instead of a folder")
-    parser.add_argument("--no-tune", action="store_true", help="fixed k=60 baselines (fast)")
-    parser.add_argument("--json", default=None, help="also write the full result as JSON")
-    parser.add_argument("--threads", type=int, default=None)
-    args = parser.parse_args(argv)
-    if args.threads:
-        import torch
-        torch.set_num_threads(args.threads)
-    try:
-        model = load_model(args.model)
-        if args.synthetic:
-            shapes = [(n, *shape_mesh(n)) for n in args.synthetic]
-        else:
-            shapes = [(p.stem, *read_mesh(p)) for p in find_meshes(args.mesh_dir)]
-            if not shapes:
-                raise InputError(f"{args.mesh_dir}: no meshes found")
-    except (InputError, ModelNotFoundError, ModelMismatchError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    result = evaluate(shapes, model, [x / 100 for x in args.levels], args.points, args.iterations,
-                      log=lambda m: print(m, flush=True), tune=not args.no_tune)
-    print(format_table(result))
-    if args.json:
-        Path(args.json).write_text(json.dumps(result, indent=2))
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import InputError
+from ..errors import InputError
 
 MESH_SUFFIXES = (".off", ".obj", ".ply")
 
@@ -89,7 +89,7 @@ def read_obj(path):
 
 
 def read_ply_mesh(path):
-    from .pointio import read_ply  # the project's one PLY reader
+    from .points import read_ply  # the project's one PLY reader
 
     cloud = read_ply(path)
     faces = cloud.faces

@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import InputError
+from ..errors import InputError
 
 POINT_SUFFIXES = (".ply", ".xyz", ".npy")
 

@@ -10,10 +10,10 @@ import time
 import numpy as np
 import torch
 
-from .config import get_preset
-from .device import autocast, cpu_bf16_supported, pick_device
-from .infer import denoise
-from .model import build_model, inference_net
+from ..config import get_preset
+from ..device import autocast, cpu_bf16_supported, pick_device
+from ..infer import denoise
+from ..model import build_model, inference_net
 from .shapes import sample_shape
 
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 import torch
 from torch.nn import functional as F
 
-from .config import LossConfig
+from ..config import LossConfig
 
 
 def nt_xent(z_p: torch.Tensor, z_q: torch.Tensor, temperature: float = 0.01) -> torch.Tensor:

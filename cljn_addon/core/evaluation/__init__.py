@@ -1,0 +1,1 @@
+"""Evaluation: metrics, classic baselines, the eval/demo/bench logic and synthetic shapes."""

@@ -1,0 +1,1 @@
+"""Point-cloud and mesh file formats (numpy only; no torch, no bpy)."""

@@ -1,0 +1,1 @@
+"""Training: data (sampled shapes, noise variants, patch batches), losses, the two-stage loop."""
