@@ -209,15 +209,18 @@ def test_npy_variants(tmp_path):
         pointio.read_points(tmp_path / "junk.npy")
 
 
-def test_check_points():
+def test_points_are_validated_by_the_engine():
+    """One validator (core.infer.validate_points) checks clouds from every file format."""
+    from cljn_addon.core.infer import validate_points
+
     with pytest.raises(InputError, match="empty"):
-        pointio.check_points(np.zeros((0, 3)), "a.ply")
-    pts = np.zeros((5, 3))
+        validate_points(np.zeros((0, 3)))
+    pts = np.random.default_rng(0).random((5, 3))
     pts[2, 1] = np.nan
     pts[4, 0] = np.inf
-    with pytest.raises(InputError, match=r"a.ply: 2 point\(s\) have NaN.*index 2"):
-        pointio.check_points(pts, "a.ply")
-    assert pointio.check_points(np.ones((2, 3), np.float32)).dtype == np.float64
+    with pytest.raises(InputError, match=r"2 point\(s\) have NaN.*row 2"):
+        validate_points(pts)
+    assert validate_points(np.random.default_rng(1).random((4, 3)).astype(np.float32)).dtype == np.float64
 
 
 def test_read_points_dispatch_errors(tmp_path):

@@ -4,6 +4,15 @@ from __future__ import annotations
 import dataclasses
 import json
 from dataclasses import dataclass
+from pathlib import Path
+
+# The shipped model: weights (safetensors) with their JSON config beside them.
+WEIGHTS_DIR = Path(__file__).resolve().parent.parent / "weights"
+DEFAULT_WEIGHTS = WEIGHTS_DIR / "cljn_small.safetensors"
+
+# Engine option values (one table each; the CLI's choices and the engine's checks use them).
+ORIENTATIONS = ("outward", "viewpoint", "none")
+DEVICE_CHOICES = ("auto", "cpu", "cuda", "gpu", "mps")
 
 
 @dataclass(frozen=True)

@@ -5,9 +5,8 @@ import contextlib
 
 import torch
 
+from .config import DEVICE_CHOICES
 from .errors import InputError
-
-DEVICE_CHOICES = ("auto", "cpu", "cuda", "gpu", "mps")
 
 
 def pick_device(name: str = "auto") -> torch.device:

@@ -15,3 +15,14 @@ class ModelNotFoundError(FileNotFoundError):
 
 class ModelMismatchError(ValueError):
     """A weights file does not match its JSON config (names the mismatch)."""
+
+
+def user_message(exc: BaseException) -> str | None:
+    """The plain message of an error the user can fix or chose (None: an internal error).
+
+    Both front ends add their context: the operators a hint about the panel, the command line
+    the file name.
+    """
+    if isinstance(exc, (InputError, Cancelled, ModelNotFoundError, ModelMismatchError)):
+        return str(exc)
+    return None

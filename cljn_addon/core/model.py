@@ -11,11 +11,8 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from .config import ModelConfig, get_preset
+from .config import DEFAULT_WEIGHTS, ModelConfig, get_preset
 from .errors import ModelMismatchError, ModelNotFoundError
-
-WEIGHTS_DIR = Path(__file__).resolve().parent.parent / "weights"
-DEFAULT_WEIGHTS = WEIGHTS_DIR / "cljn_small.safetensors"
 
 
 class Encoder(nn.Module):

@@ -22,9 +22,9 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import breadth_first_order, connected_components, minimum_spanning_tree
 from scipy.spatial import cKDTree
 
+from .config import ORIENTATIONS
 from .errors import InputError
 
-ORIENTATIONS = ("outward", "viewpoint", "none")
 SMOOTH_COS = 0.9
 
 

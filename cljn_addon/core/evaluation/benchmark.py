@@ -1,13 +1,11 @@
 """Speed benchmark: network patches per second and seconds for a 100K-point cloud,
-4 iterations, per preset (untrained weights: speed does not depend on their values)."""
+4 iterations, per preset (untrained weights: speed does not depend on their values).
+cli/bench.py prints the table."""
 from __future__ import annotations
 
-import argparse
 import os
-import sys
 import time
 
-import numpy as np
 import torch
 
 from ..config import get_preset
@@ -34,34 +32,28 @@ def peak_rss_gib():
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2 ** 20   # Linux: KiB
 
 
-def main(argv=None):
-    parser = argparse.ArgumentParser(prog="run.py bench", description=__doc__)
-    parser.add_argument("--presets", nargs="+", default=["small", "paper"])
-    parser.add_argument("--points", type=int, default=100_000)
-    parser.add_argument("--iterations", type=int, default=4)
-    parser.add_argument("--device", default="auto")
-    parser.add_argument("--skip-full", nargs="*", default=["paper"], metavar="PRESET",
-                        help="presets timed on the network only (the paper preset's full run takes ~15 min here)")
-    args = parser.parse_args(argv)
-    device = pick_device(args.device)
-    print(f"device {device}, {os.cpu_count()} CPU cores, torch {torch.__version__}, threads "
-          f"{torch.get_num_threads()}, bf16 autocast {'on' if device.type != 'cpu' or cpu_bf16_supported() else 'off'}")
-    noisy, _, _ = sample_shape("torus", args.points, noise=0.01, seed=0)
-    print(f"| preset | points/patch | network patches/s | {args.points // 1000}K points x {args.iterations} iterations |")
-    print("|---|---|---|---|")
-    for name in args.presets:
-        torch.manual_seed(0)
-        model = build_model(get_preset(name))
-        rate = patches_per_second(model, device, batch=1024 if name != "paper" else 128)
-        if name in args.skip_full:
-            full = f"~{args.points * args.iterations / rate:.0f} s (network time only, estimated)"
-        else:
-            t0 = time.time()
-            denoise(noisy, model, iterations=args.iterations, device=args.device)
-            full = f"{time.time() - t0:.1f} s (peak memory of this process so far {peak_rss_gib():.2f} GiB)"
-        print(f"| {name} | {model.config.points_per_patch} | {rate:,.0f} | {full} |", flush=True)
-    return 0
+def machine_line(device) -> str:
+    bf16 = "on" if device.type != "cpu" or cpu_bf16_supported() else "off"
+    return (f"device {device}, {os.cpu_count()} CPU cores, torch {torch.__version__}, threads "
+            f"{torch.get_num_threads()}, bf16 autocast {bf16}")
 
 
-if __name__ == "__main__":
-    sys.exit(main())
+def bench_cloud(points):
+    """The cloud every preset is timed on: a noisy torus."""
+    noisy, _, _ = sample_shape("torus", points, noise=0.01, seed=0)
+    return noisy
+
+
+def bench_preset(name, noisy, iterations=4, device="auto", full=True) -> dict:
+    """One table row: network patches/s and (full=True) the seconds of a whole denoise."""
+    torch.manual_seed(0)
+    model = build_model(get_preset(name))
+    rate = patches_per_second(model, pick_device(device), batch=1024 if name != "paper" else 128)
+    row = {"preset": name, "points_per_patch": model.config.points_per_patch, "patches_per_second": rate}
+    if full:
+        t0 = time.time()
+        denoise(noisy, model, iterations=iterations, device=device)
+        row.update(seconds=time.time() - t0, peak_gib=peak_rss_gib())
+    else:
+        row["estimated_seconds"] = len(noisy) * iterations / rate
+    return row

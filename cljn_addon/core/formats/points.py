@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import os
 import re
-import sys
 import tempfile
 import warnings
 from contextlib import contextmanager
@@ -28,8 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-
-POINT_SUFFIXES = (".ply", ".xyz", ".npy")
+from . import POINT_SUFFIXES
 
 # PLY scalar type names (both spellings) -> numpy kind.
 _PLY_TYPES = {
@@ -65,23 +63,7 @@ class PointCloud:
         return len(self.points)
 
 
-# --------------------------------------------------------------------------- validation
-
-def check_points(points, name="input") -> np.ndarray:
-    """(N, 3) finite float64 copy of `points`, or InputError naming the problem."""
-    pts = np.asarray(points)
-    if pts.ndim != 2 or pts.shape[1] != 3:
-        raise InputError(f"{name}: expected N x 3 coordinates, got shape {tuple(pts.shape)}")
-    if len(pts) == 0:
-        raise InputError(f"{name}: the point cloud is empty")
-    pts = pts.astype(np.float64)
-    bad = ~np.isfinite(pts).all(axis=1)
-    if bad.any():
-        first = int(np.flatnonzero(bad)[0])
-        raise InputError(f"{name}: {int(bad.sum())} point(s) have NaN or infinite coordinates "
-                         f"(first at index {first})")
-    return pts
-
+# --------------------------------------------------------------------------- helpers
 
 def _looks_like_normals(cols: np.ndarray) -> bool:
     """Unlabelled columns are taken as normals when every row is a unit vector."""
@@ -557,17 +539,3 @@ def write_points(path, cloud: PointCloud, outliers=None) -> list:
         raise InputError(f"{path}: unsupported output format {path.suffix or '(none)'!r} "
                          f"(use {', '.join(POINT_SUFFIXES)})")
     return writer(path, cloud, outliers=outliers)
-
-
-def written_files(path) -> list:
-    """The files `write_points(path, ...)` creates for a cloud with normals."""
-    path = Path(path)
-    if path.suffix.lower() == ".xyz":
-        return [path, path.with_suffix(".normals")]
-    return [path]
-
-
-if __name__ == "__main__":                                    # pragma: no cover
-    for arg in sys.argv[1:]:
-        c = read_points(arg)
-        print(arg, len(c), "normals" if c.normals is not None else "", list(c.extra))
