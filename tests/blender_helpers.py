@@ -174,6 +174,10 @@ class BlenderTest:
         return importlib.import_module(PACKAGE + ".blender.object_io")
 
     @property
+    def pipeline(self):
+        return importlib.import_module(PACKAGE + ".blender.pipeline")
+
+    @property
     def operators(self):
         return importlib.import_module(PACKAGE + ".blender.operators")
 

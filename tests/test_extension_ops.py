@@ -309,19 +309,20 @@ def test_worker_job_cancel_leaves_object_unchanged(bx):
     import pytest
 
     shapes = __import__(bx.package + ".core.evaluation.shapes", fromlist=["shapes"])
-    ops, object_io, core = bx.operators, bx.object_io, bx.core
+    ops, pipeline, core = bx.operators, bx.pipeline, bx.core
     bx.clear_scene()
     noisy, _, _ = shapes.sample_shape("box", 3000, noise=0.01, seed=5)
     obj = bx.make_cloud(noisy, "Box")
     names, before = bx.attribute_names(obj), bx.local_points(obj)
     model = core.load_model(bx.model_file("tiny"))
-    points = object_io.read_world_points(obj)
+    options = __import__(bx.package + ".core.options", fromlist=["options"]).DenoiseOptions(iterations=50)
+    snapshots = [pipeline.snapshot(obj)]
     seen = []
 
     def work(progress, cancel):
-        return object_io.compute(points, model, iterations=50, progress=progress, cancel=cancel)
+        return pipeline.compute(snapshots, options, model, progress=progress, cancel=cancel)
 
-    job = ops.Job(work, "denoising")
+    job = ops.BackgroundJob(work, "denoising")
     job.start()
     deadline = time.time() + 60
     while job.fraction == 0.0 and not job.done and time.time() < deadline:
@@ -334,12 +335,14 @@ def test_worker_job_cancel_leaves_object_unchanged(bx):
     assert "cancelling" in job.status_text()
     assert bx.attribute_names(obj) == names and np.array_equal(bx.local_points(obj), before)
 
-    # The synchronous path of the same glue: cancel set before the run -> Cancelled, unchanged.
+    # The synchronous path of the same pipeline: cancel set before the run -> Cancelled, unchanged.
     import threading
     event = threading.Event()
     event.set()
     with pytest.raises(core.Cancelled):
-        object_io.run_on_object(obj, model, cancel=event, iterations=1)
+        results = pipeline.compute([pipeline.snapshot(obj)], options.replace(iterations=1), model,
+                                   cancel=event)
+        pipeline.write_back(snapshots[0], results[0])
     assert bx.attribute_names(obj) == names and np.array_equal(bx.local_points(obj), before)
 
 
@@ -461,3 +464,50 @@ def test_modal_run_updates_progress_and_esc_cancels(bx):
     assert op.reports[-1] == ("WARNING", "Denoising cancelled: nothing was changed"), op.reports
     assert {n: bx.attribute(obj, n).tobytes() for n in snapshot} == snapshot
     assert ops._active_job is None and ctx.workspace.texts[-1] is None
+
+
+@in_blender(timeout=400)
+def test_operator_and_command_line_give_identical_results(bx):
+    """The anchor of the one pipeline: the same cloud through the Denoise Points operator and
+    through `standalone/run.py denoise` on a .blend gives identical positions and normals."""
+    import os
+    import subprocess
+    import sys
+
+    import bpy
+    import numpy as np
+    import torch
+
+    from blender_helpers import REPO
+
+    shapes = __import__(bx.package + ".core.evaluation.shapes", fromlist=["shapes"])
+    bx.clear_scene()
+    noisy, _, _ = shapes.sample_shape("octahedron", 3000, noise=0.01, seed=11)
+    m = np.array(MATRIX)
+    local = np.linalg.solve(m[:3, :3], (noisy - m[:3, 3]).T).T
+    obj = bx.make_cloud(local, "Scan", matrix=m)
+    bx.select(obj)
+    bx.use_model_file("tiny")
+    bx.settings.iterations = 2
+    bx.settings.patch_radius = 5.0
+    bx.settings.orientation = "OUTWARD"
+    scene_in, scene_out = bx.tmp / "anchor_in.blend", bx.tmp / "anchor_out.blend"
+    assert bpy.ops.wm.save_as_mainfile(filepath=str(scene_in), copy=True) == {"FINISHED"}
+
+    assert bpy.ops.cljn.denoise_points() == {"FINISHED"}
+    names = ("position", "custom_normal", "cljn_normal", "cljn_displacement", "cljn_outlier")
+    by_operator = {n: bx.attribute(obj, n).copy() for n in names}
+    assert not np.array_equal(by_operator["position"], local.astype(np.float32)), "nothing moved"
+
+    env = dict(os.environ, PYTHONDONTWRITEBYTECODE="1")
+    proc = subprocess.run(
+        [sys.executable, str(REPO / "standalone" / "run.py"), "denoise", str(scene_in), "-o", str(scene_out),
+         "--model", bx.model_file("tiny"), "--iterations", "2", "--patch-radius", "5", "--orient", "outward",
+         "--threads", str(torch.get_num_threads()), "--no-progress"],
+        capture_output=True, text=True, env=env, cwd=REPO, timeout=300)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+
+    assert bpy.ops.wm.open_mainfile(filepath=str(scene_out), load_ui=False) == {"FINISHED"}
+    by_cli = {n: bx.attribute(bpy.data.objects["Scan"], n) for n in names}
+    for name in names:
+        assert np.array_equal(by_operator[name], by_cli[name]), f"{name} differs between operator and CLI"

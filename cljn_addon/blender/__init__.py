@@ -1,20 +1,31 @@
-"""Blender glue of CLJN Denoise: properties, operators, panel, preferences, object <-> arrays.
+"""Blender glue of CLJN Denoise: everything that imports bpy.
 
-Thin by design: object_io reads arrays with foreach_get, the engine (..core) does the work,
-object_io writes the results with foreach_set. Nothing here imports torch at registration.
+Thin by design: object_io reads arrays with foreach_get and writes results with foreach_set,
+pipeline runs "snapshot world points -> engine -> write back" for the operators and for the
+command line's .blend files, blendfile opens/saves .blend files and builds point-cloud
+objects from arrays, preview renders the CLI's before/after picture; properties, operators,
+panel and preferences are the UI; deps finds and installs torch & co. Nothing here imports
+torch at registration, and importing this package imports no bpy (register() does).
 """
-from . import deps, operators, panel, preferences, properties
 
-_modules = (preferences, properties, operators, panel)
+
+def _ui_modules():
+    from . import operators, panel, preferences, properties
+
+    return (preferences, properties, operators, panel)
 
 
 def register():
+    from . import deps
+
     deps.activate()
-    for module in _modules:
+    for module in _ui_modules():
         module.register()
 
 
 def unregister():
-    for module in reversed(_modules):
+    from . import deps
+
+    for module in reversed(_ui_modules()):
         module.unregister()
     deps.deactivate()

@@ -3,7 +3,9 @@
 torch, scipy and safetensors are not bundled with Blender. The Install Dependencies button runs
 Blender's own Python pip (`sys.executable -m pip install --target DIR`) into this extension's
 user directory, which `activate()` appends to sys.path at registration. Appending (not
-prepending) keeps Blender's own numpy first. No UI code here; no import of torch either.
+prepending) keeps Blender's own numpy first. No UI code here; no import of torch either, and
+bpy only inside the functions that need it: the command line (cli/) runs the same check,
+`engine_missing()`, in any Python.
 """
 from __future__ import annotations
 
@@ -15,14 +17,13 @@ import subprocess
 import sys
 import tempfile
 
-import bpy
-
 # Import name -> pip requirement. numpy ships with Blender and is never replaced (see pip_command).
 REQUIRED = {
     "torch": "torch",
     "scipy": "scipy",
     "safetensors": "safetensors",
 }
+ENGINE_MODULES = ("numpy", *REQUIRED)   # what the engine imports (numpy included)
 TORCH_CPU_INDEX = "https://download.pytorch.org/whl/cpu"
 PYPI_INDEX = "https://pypi.org/simple"
 
@@ -39,6 +40,8 @@ class DependencyError(RuntimeError):
 
 def user_dir(sub: str, create: bool = True) -> str:
     """A writable per-user directory of this extension (kept across upgrades)."""
+    import bpy
+
     try:
         return bpy.utils.extension_path_user(ADDON_PACKAGE, path=sub, create=create)
     except (ValueError, KeyError):
@@ -67,16 +70,53 @@ def deactivate() -> None:
             sys.path.remove(path)
 
 
+def _findable(name: str) -> bool:
+    try:
+        return importlib.util.find_spec(name) is not None
+    except (ImportError, ValueError):
+        return False
+
+
 def refresh() -> dict[str, bool]:
     """Re-check which dependencies can be found (cheap: no import)."""
     importlib.invalidate_caches()
     _status.clear()
     for name in REQUIRED:
-        try:
-            _status[name] = importlib.util.find_spec(name) is not None
-        except (ImportError, ValueError):
-            _status[name] = False
+        _status[name] = _findable(name)
     return dict(_status)
+
+
+def install_folders() -> list[str]:
+    """Every folder where an Install Dependencies button may have put packages: this
+    extension's site-packages in each extension repository, and the plain-package fallback."""
+    import bpy
+
+    folders = []
+    root = bpy.utils.user_resource("EXTENSIONS", path=".user")
+    if root and os.path.isdir(root):
+        for repo in sorted(os.listdir(root)):
+            folders.append(os.path.join(root, repo, "cljn_denoise", "site-packages"))
+    folders.append(site_packages_dir(create=False))
+    return [f for f in folders if f and os.path.isdir(f)]
+
+
+def engine_missing() -> list[str]:
+    """Names of the engine's packages (numpy included) that cannot be imported here. Under
+    Blender (the command line run with `blender -b -P`), the folders of the Install
+    Dependencies button are appended to sys.path first (appended: Blender's numpy stays first)."""
+    importlib.invalidate_caches()
+    gone = [m for m in ENGINE_MODULES if not _findable(m)]
+    if gone and "bpy" in sys.modules:
+        try:
+            folders = install_folders()
+        except Exception:                                     # noqa: BLE001 - best effort only
+            folders = []
+        for folder in folders:
+            if folder not in sys.path:
+                sys.path.append(folder)
+        importlib.invalidate_caches()
+        gone = [m for m in ENGINE_MODULES if not _findable(m)]
+    return gone
 
 
 def status() -> dict[str, bool]:

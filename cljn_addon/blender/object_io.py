@@ -1,8 +1,8 @@
 """Blender objects <-> numpy arrays for the CLJN engine.
 
 The one place that reads point clouds out of Blender objects and writes results back; used by
-the extension's operators and by the headless runner on .blend files. No UI code here, and no
-import of torch until a function that runs the engine is called.
+pipeline.py (the operators and the command line's .blend files). No UI code here, and no
+import of torch.
 
 A point cloud is a Blender PointCloud object or a mesh with vertices and no faces (any mesh
 with vertices when use_mesh_vertices is set). The engine works in world space: points go out
@@ -222,53 +222,6 @@ def restore_original(obj) -> bool:
         _set(data, CUSTOM_NORMAL, "FLOAT_VECTOR", _get(data, ORIGINAL_NORMAL, "FLOAT_VECTOR", n))
     _tag_update(obj)
     return True
-
-
-ORIENTATIONS = ("OUTWARD", "CAMERA", "CURSOR", "NONE")
-
-
-def orientation_options(scene, orientation="OUTWARD") -> dict:
-    """Engine keyword arguments for an orientation choice, viewpoints in world space."""
-    if orientation == "OUTWARD":
-        return {"orientation": "outward"}
-    if orientation == "NONE":
-        return {"orientation": "none"}
-    if orientation == "CAMERA":
-        if scene.camera is None:
-            raise _input_error("Orientation 'Toward Camera' needs an active scene camera: add one "
-                               "or pick another orientation")
-        return {"orientation": "viewpoint",
-                "viewpoint": tuple(scene.camera.matrix_world.translation)}
-    if orientation == "CURSOR":
-        return {"orientation": "viewpoint", "viewpoint": tuple(scene.cursor.location)}
-    raise _input_error(f"unknown orientation {orientation!r}; choose one of {', '.join(ORIENTATIONS)}")
-
-
-def compute(points, model, *, normals_only=False, **options):
-    """Run the engine on world-space points: denoise, or normals only."""
-    from .. import core
-
-    fn = core.estimate_normals if normals_only else core.denoise
-    return fn(points, model, **options)
-
-
-def run_on_object(obj, model, *, normals_only=False, use_mesh_vertices=False, progress=None,
-                  cancel=None, **options):
-    """Read, run the engine, write: the whole job for one object, synchronously.
-
-    options go to core.denoise / core.estimate_normals (iterations, patch_radius_fraction,
-    orientation, viewpoint, device, seed...). Raises core.InputError for an unusable object and
-    core.Cancelled when cancel is set (the object is then unchanged). Returns the engine result.
-    """
-    reason = check_point_cloud(obj, use_mesh_vertices)
-    if reason is not None:
-        raise _input_error(reason)
-    matrix = _matrix(obj)
-    points = read_world_points(obj, matrix)
-    result = compute(points, model, normals_only=normals_only, progress=progress, cancel=cancel,
-                     **options)
-    write_result(obj, result, normals_only=normals_only, matrix_world=matrix)
-    return result
 
 
 def mesh_world_triangles(obj) -> tuple[np.ndarray, np.ndarray]:

@@ -12,25 +12,22 @@ import os
 import threading
 import time
 import traceback
-from dataclasses import dataclass
 
 import numpy as np
 
 import bpy
 from bpy.props import EnumProperty, StringProperty
 
-from . import deps, object_io
+from . import deps, object_io, pipeline
 from .preferences import get_preferences
-from .properties import DEVICE_TO_CORE
 
 NOTHING_SELECTED = ("Nothing selected: select one or more point clouds (meshes without faces "
                     "or Point Cloud objects)")
 
 _active_job = None          # at most one engine job at a time
-_model_cache: dict = {}     # (path, mtime) -> loaded network
 
 
-class Job:
+class BackgroundJob:
     """work(progress, cancel) on a worker thread (start) or inline (run); polled by the caller."""
 
     def __init__(self, work, title):
@@ -81,17 +78,15 @@ def describe_error(exc: BaseException) -> str:
         return f"Could not load the CLJN engine ({exc}); try Install Dependencies"
     if isinstance(exc, deps.DependencyError):
         return f"Installing dependencies failed: {exc}"
-    try:
-        from ..core import errors
-    except Exception:   # torch missing or broken: handled above when it matters
-        errors = None
-    if errors is not None:
-        if isinstance(exc, errors.ModelNotFoundError):
-            return f"{exc} In Blender: choose a model file in the CLJN panel, or press Train Model"
-        if isinstance(exc, errors.ModelMismatchError):
-            return f"Model file mismatch: {exc}"
-        if isinstance(exc, (errors.InputError, errors.Cancelled)):
-            return str(exc)
+    from ..core import errors
+
+    if isinstance(exc, errors.ModelNotFoundError):
+        return f"{exc} In Blender: choose a model file in the CLJN panel, or press Train Model"
+    if isinstance(exc, errors.ModelMismatchError):
+        return f"Model file mismatch: {exc}"
+    message = errors.user_message(exc)
+    if message is not None:
+        return message
     traceback.print_exception(type(exc), exc, exc.__traceback__)
     return f"Unexpected error ({type(exc).__name__}: {exc}); details in the system console"
 
@@ -112,7 +107,7 @@ def _mode_poll(cls, context) -> bool:
 
 
 class _JobOperator:
-    """Mixin: prepare() on the main thread -> work in a Job -> apply() on the main thread."""
+    """Mixin: prepare() on the main thread -> work in a BackgroundJob -> apply() on the main thread."""
 
     job_title = "working"
     cancelled_text = "nothing was changed"
@@ -136,7 +131,7 @@ class _JobOperator:
         work = self._prepare_or_report(context)
         if work is None:
             return {"CANCELLED"}
-        job = Job(work, self.job_title)
+        job = BackgroundJob(work, self.job_title)
         _active_job = job
         try:
             job.run()
@@ -151,7 +146,7 @@ class _JobOperator:
         work = self._prepare_or_report(context)
         if work is None:
             return {"CANCELLED"}
-        self._job = Job(work, self.job_title)
+        self._job = BackgroundJob(work, self.job_title)
         _active_job = self._job
         self._job.start()
         wm = context.window_manager
@@ -216,48 +211,6 @@ class _JobOperator:
 # Denoise Points / Estimate Normals
 
 
-@dataclass
-class _Item:
-    name: str
-    data_pointer: int
-    matrix: np.ndarray
-    points: np.ndarray
-
-
-def _model_path(context, settings):
-    """None for the shipped model, else an absolute path; raises ValueError with a message."""
-    if settings.model_source == "FILE":
-        if not settings.model_path.strip():
-            raise ValueError("Model is set to File but no file is chosen: pick a .safetensors file "
-                             "in the CLJN panel, or set Model to Default")
-        return bpy.path.abspath(settings.model_path)
-    prefs = get_preferences(context)
-    if prefs is not None and prefs.default_model_path.strip():
-        return bpy.path.abspath(prefs.default_model_path)
-    return None
-
-
-def _device(context, settings) -> str:
-    key = settings.device
-    if key == "PREFERENCES":
-        prefs = get_preferences(context)
-        key = prefs.device if prefs is not None else "AUTO"
-    return DEVICE_TO_CORE[key]
-
-
-def load_model_cached(path):
-    """core.load_model with a cache keyed by file and modification time."""
-    from .. import core
-
-    key = (path, os.path.getmtime(path) if path and os.path.exists(path) else None)
-    model = _model_cache.get(key)
-    if model is None:
-        model = core.load_model(path)
-        _model_cache.clear()
-        _model_cache[key] = model
-    return model
-
-
 def _report_missing_deps(op) -> bool:
     missing = deps.missing()
     if missing:
@@ -288,51 +241,27 @@ class _PointsOperator(_JobOperator):
         if _report_missing_deps(self):
             return None
         try:
-            model_path = _model_path(context, settings)
-            if model_path is not None and not os.path.isfile(model_path):
-                raise ValueError(f"Model file not found: {model_path}")
-            options = object_io.orientation_options(context.scene, settings.orientation)
+            options = pipeline.options_from_settings(context, settings, self.normals_only)
         except ValueError as exc:
             self.report({"ERROR"}, str(exc))
             return None
-        options.update(iterations=settings.iterations,
-                       patch_radius_fraction=settings.patch_radius / 100.0,
-                       device=_device(context, settings))
         for reason in refused:
             self.report({"WARNING"}, reason + " (skipped)")
-        items = []
-        for obj in objects:
-            matrix = np.array(obj.matrix_world, dtype=np.float64)
-            items.append(_Item(obj.name, obj.data.as_pointer(), matrix,
-                               object_io.read_world_points(obj, matrix)))
-        self._items = items
-        normals_only = self.normals_only
-        if normals_only:
-            options.pop("iterations")
+        snapshots = [pipeline.snapshot(obj) for obj in objects]
+        self._snapshots = snapshots
 
         def work(progress, cancel):
             progress(0.0, "loading the model")
-            model = load_model_cached(model_path)
-            results = []
-            for i, item in enumerate(items):
-                def on_progress(fraction, message="", i=i, name=item.name):
-                    progress((i + min(max(fraction, 0.0), 1.0)) / len(items), f"{name}: {message}")
-                results.append(object_io.compute(item.points, model, normals_only=normals_only,
-                                                 progress=on_progress, cancel=cancel, **options))
-            return results
+            model = options.load_model()
+            return pipeline.compute(snapshots, options, model, progress=progress, cancel=cancel)
 
         return work
 
     def apply(self, context, results):
         written, points, moved = 0, 0, []
-        for item, result in zip(self._items, results):
-            obj = bpy.data.objects.get(item.name)
-            if obj is None or obj.data is None or obj.data.as_pointer() != item.data_pointer:
-                self.report({"WARNING"}, f"'{item.name}' was removed or replaced while running: skipped")
-                continue
+        for snap, result in zip(self._snapshots, results):
             try:
-                for warning in object_io.write_result(obj, result, normals_only=self.normals_only,
-                                                      matrix_world=item.matrix):
+                for warning in pipeline.write_back(snap, result, normals_only=self.normals_only):
                     self.report({"WARNING"}, warning)
             except ValueError as exc:
                 self.report({"WARNING"}, str(exc))
@@ -543,6 +472,8 @@ def unregister():
     if _active_job is not None:
         _active_job.cancel.set()
         _active_job = None
-    _model_cache.clear()
+    from ..core.options import clear_model_cache
+
+    clear_model_cache()
     for cls in reversed(classes):
         bpy.utils.unregister_class(cls)

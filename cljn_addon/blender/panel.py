@@ -4,14 +4,13 @@ import os
 
 import bpy
 
+from ..core.config import DEFAULT_WEIGHTS
 from . import deps, object_io
 from .preferences import draw_dependencies, get_preferences
 
-WEIGHTS_DIR = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "weights")
-
 
 def shipped_model_present() -> bool:
-    return os.path.isdir(WEIGHTS_DIR) and any(f.endswith(".safetensors") for f in os.listdir(WEIGHTS_DIR))
+    return DEFAULT_WEIGHTS.is_file()
 
 
 def _default_model_text(context) -> tuple[str, str]:

@@ -4,14 +4,9 @@ import bpy
 from bpy.props import BoolProperty, EnumProperty, StringProperty
 
 from . import deps
+from .properties import DEVICES
 
 ADDON_PACKAGE = deps.ADDON_PACKAGE
-
-PREF_DEVICES = (
-    ("AUTO", "Auto", "A GPU when torch sees one, else the CPU"),
-    ("CPU", "CPU", "Always the CPU"),
-    ("GPU", "GPU", "CUDA or Apple MPS"),
-)
 
 
 def get_preferences(context=None):
@@ -49,7 +44,7 @@ class CLJN_AddonPreferences(bpy.types.AddonPreferences):
     default_model_path: StringProperty(
         name="Default Model File", subtype="FILE_PATH",
         description="Used when the panel's Model is Default; empty means the model shipped with the extension")
-    device: EnumProperty(name="Device", items=PREF_DEVICES, default="AUTO",
+    device: EnumProperty(name="Device", items=DEVICES, default="AUTO",
                          description="Where the network runs when the panel's Device is Default")
     torch_cpu_only: BoolProperty(
         name="CPU-only torch", default=True,

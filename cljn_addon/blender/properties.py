@@ -7,19 +7,21 @@ MODEL_SOURCES = (
     ("DEFAULT", "Default", "The model file set in the add-on preferences, else the shipped model"),
     ("FILE", "File", "A .safetensors weights file (its .json config beside it)"),
 )
+# The panel's orientation choices; pipeline.options_from_settings maps them to the engine's.
 ORIENTATIONS = (
     ("OUTWARD", "Outward", "Point normals out of the shape"),
     ("CAMERA", "Toward Camera", "Point normals toward the active scene camera (scans)"),
     ("CURSOR", "Toward 3D Cursor", "Point normals toward the 3D cursor"),
     ("NONE", "None", "Leave the sign of each normal as the network gives it"),
 )
+# The devices (the add-on preferences offer these; the panel adds "Default" = the preferences').
 DEVICES = (
-    ("PREFERENCES", "Default", "The device chosen in the add-on preferences"),
     ("AUTO", "Auto", "A GPU when torch sees one, else the CPU"),
     ("CPU", "CPU", "Always the CPU"),
     ("GPU", "GPU", "CUDA or Apple MPS; refuses to run when torch sees no GPU"),
 )
-DEVICE_TO_CORE = {"AUTO": "auto", "CPU": "cpu", "GPU": "gpu"}
+PANEL_DEVICES = (("PREFERENCES", "Default", "The device chosen in the add-on preferences"),) + DEVICES
+DEVICE_TO_CORE = {"AUTO": "auto", "CPU": "cpu", "GPU": "gpu"}   # -> core.config.DEVICE_CHOICES
 
 
 class CLJN_PG_settings(bpy.types.PropertyGroup):
@@ -35,7 +37,7 @@ class CLJN_PG_settings(bpy.types.PropertyGroup):
         subtype="PERCENTAGE", precision=1,
         description="Neighbourhood radius in % of the bounding-box diagonal of the cloud (world space)")
     orientation: EnumProperty(name="Orientation", items=ORIENTATIONS, default="OUTWARD")
-    device: EnumProperty(name="Device", items=DEVICES, default="PREFERENCES")
+    device: EnumProperty(name="Device", items=PANEL_DEVICES, default="PREFERENCES")
     use_mesh_vertices: BoolProperty(
         name="Use Vertices of Meshes", default=False,
         description="Also filter the vertices of meshes that have faces (the faces follow the vertices)")

@@ -1,0 +1,121 @@
+"""One pipeline for Blender objects, used by the Denoise Points / Estimate Normals operators
+and by the command line's .blend files:
+
+    snapshot(obj)            world points and the matrix they were read with (main thread)
+    compute(snapshots, ...)  the engine on each (any thread: touches no Blender data)
+    write_back(snap, result) through the same matrix onto the same object (main thread)
+
+`options_from_settings` builds the engine's `DenoiseOptions` from the panel's properties
+(the command line builds the same object from its arguments).
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+
+import numpy as np
+
+import bpy
+
+from ..core.errors import InputError
+from ..core.options import DenoiseOptions
+from . import object_io
+from .preferences import get_preferences
+from .properties import DEVICE_TO_CORE
+
+
+@dataclass
+class Snapshot:
+    """An object's points as the engine sees them, and how to find the object again."""
+
+    name: str
+    data_pointer: int
+    matrix: np.ndarray       # matrix_world when read: results go back through it
+    points: np.ndarray       # (N, 3) float64, world space
+
+
+def snapshot(obj) -> Snapshot:
+    matrix = np.array(obj.matrix_world, dtype=np.float64)
+    return Snapshot(obj.name, obj.data.as_pointer(), matrix, object_io.read_world_points(obj, matrix))
+
+
+def compute(snapshots, options: DenoiseOptions, model, *, progress=None, cancel=None) -> list:
+    """The engine on each snapshot in turn; progress(fraction, "name: message") over all."""
+    results = []
+    for i, snap in enumerate(snapshots):
+        on_progress = None
+        if progress is not None:
+            def on_progress(fraction, message="", i=i, name=snap.name):
+                progress((i + min(max(fraction, 0.0), 1.0)) / len(snapshots), f"{name}: {message}")
+        results.append(options.run(snap.points, model, progress=on_progress, cancel=cancel))
+    return results
+
+
+def write_back(snap: Snapshot, result, normals_only=False) -> list:
+    """Write result onto the snapshot's object through the snapshot's matrix; returns warnings.
+    InputError when the object was removed, replaced or edited since the snapshot."""
+    obj = bpy.data.objects.get(snap.name)
+    if obj is None or obj.data is None or obj.data.as_pointer() != snap.data_pointer:
+        raise InputError(f"'{snap.name}' was removed or replaced while running: skipped")
+    return object_io.write_result(obj, result, normals_only=normals_only, matrix_world=snap.matrix)
+
+
+# ------------------------------------------------------------------------- panel -> options
+
+def camera_viewpoint(scene) -> tuple | None:
+    """The active scene camera's position (world space), or None without one."""
+    if scene is None or scene.camera is None:
+        return None
+    return tuple(scene.camera.matrix_world.translation)
+
+
+def _orientation(scene, choice) -> dict:
+    """The panel's Orientation (properties.ORIENTATIONS) as engine options."""
+    if choice == "OUTWARD":
+        return {"orientation": "outward"}
+    if choice == "NONE":
+        return {"orientation": "none"}
+    if choice == "CAMERA":
+        viewpoint = camera_viewpoint(scene)
+        if viewpoint is None:
+            raise InputError("Orientation 'Toward Camera' needs an active scene camera: add one "
+                             "or pick another orientation")
+        return {"orientation": "viewpoint", "viewpoint": viewpoint}
+    if choice == "CURSOR":
+        return {"orientation": "viewpoint", "viewpoint": tuple(scene.cursor.location)}
+    raise InputError(f"unknown orientation {choice!r}")
+
+
+def _model_path(context, settings):
+    """None for the shipped model, else an absolute path that exists."""
+    if settings.model_source == "FILE":
+        if not settings.model_path.strip():
+            raise InputError("Model is set to File but no file is chosen: pick a .safetensors file "
+                             "in the CLJN panel, or set Model to Default")
+        path = bpy.path.abspath(settings.model_path)
+    else:
+        prefs = get_preferences(context)
+        if prefs is None or not prefs.default_model_path.strip():
+            return None
+        path = bpy.path.abspath(prefs.default_model_path)
+    if not os.path.isfile(path):
+        raise InputError(f"Model file not found: {path}")
+    return path
+
+
+def _device(context, settings) -> str:
+    key = settings.device
+    if key == "PREFERENCES":
+        prefs = get_preferences(context)
+        key = prefs.device if prefs is not None else "AUTO"
+    return DEVICE_TO_CORE[key]
+
+
+def options_from_settings(context, settings, normals_only=False) -> DenoiseOptions:
+    """The panel's settings (scene.cljn_denoise) as engine options; InputError with a plain
+    message when they cannot be used (no camera, missing model file...)."""
+    return DenoiseOptions(iterations=settings.iterations,
+                          patch_radius_fraction=settings.patch_radius / 100.0,
+                          device=_device(context, settings), normals_only=normals_only,
+                          model_path=_model_path(context, settings),
+                          **_orientation(context.scene, settings.orientation))
