@@ -5,7 +5,7 @@
 
 Commands: denoise, normals, train, eval, demo, bench (`run.py COMMAND --help` for each).
 Exit codes: 0 success, 1 internal error, 2 bad input or usage, 3 some inputs of a batch
-failed, 130 interrupted. Everything happens in cljn_addon.runner; this file only finds it.
+failed, 130 interrupted. Everything happens in cljn_addon.cli; this file only finds it.
 """
 import os
 import sys
@@ -17,7 +17,7 @@ if _ROOT not in sys.path:
 # Decide before importing anything else: under Blender, bpy is already imported.
 _IN_BLENDER = "bpy" in sys.modules
 
-from cljn_addon.runner import argv_from_sys, main  # noqa: E402
+from cljn_addon.cli import argv_from_sys, main  # noqa: E402
 
 
 if __name__ == "__main__":

@@ -1,4 +1,4 @@
-"""Headless runner (standalone/run.py -> cljn_addon.runner) on point-cloud files.
+"""Headless command line (standalone/run.py -> cljn_addon.cli) on point-cloud files.
 
 An untrained network stands in for the shipped model: these tests check formats, argument
 handling, exit codes, reports and file safety, not denoising quality. The .blend and
@@ -14,7 +14,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cljn_addon import runner
+from cljn_addon import cli as command_line
+from cljn_addon.cli.progress import Progress
 from cljn_addon.core.formats import points as pointio
 from cljn_addon.core.formats.points import PointCloud
 
@@ -62,12 +63,12 @@ def _base_args(model_path):
     (["run.py", "normals", "--", "-odd-name.ply"], ["normals", "--", "-odd-name.ply"]),
 ])
 def test_argv_from_sys(argv, expected):
-    assert runner.argv_from_sys(argv) == expected
+    assert command_line.argv_from_sys(argv) == expected
 
 
 def test_argv_inside_blender_without_dash_dash():
-    assert runner.argv_from_sys(["/opt/blender/blender", "scene.blend"], in_blender=True) == []
-    assert runner.argv_from_sys(["/opt/blender/blender", "--", "bench"], in_blender=True) == ["bench"]
+    assert command_line.argv_from_sys(["/opt/blender/blender", "scene.blend"], in_blender=True) == []
+    assert command_line.argv_from_sys(["/opt/blender/blender", "--", "bench"], in_blender=True) == ["bench"]
 
 
 def test_blender_style_argv_end_to_end(tmp_path, model_path, torus):
@@ -87,8 +88,8 @@ def test_blender_style_argv_end_to_end(tmp_path, model_path, torus):
     assert f"{src}: {N} points" in proc.stdout
 
 
-def test_importing_runner_does_not_import_bpy_or_torch():
-    code = ("import sys; sys.path.insert(0, %r); import cljn_addon.runner, cljn_addon; "
+def test_importing_the_cli_does_not_import_bpy_or_torch():
+    code = ("import sys; sys.path.insert(0, %r); import cljn_addon.cli, cljn_addon; "
             "print('bpy' in sys.modules, 'torch' in sys.modules)" % str(ROOT))
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert proc.returncode == 0, proc.stderr
@@ -129,7 +130,7 @@ def test_normals_every_format_in_and_out(tmp_path, model_path, torus, out_format
     made = _write_inputs(tmp_path / "in", torus)
     out_dir = tmp_path / "out"
     report = tmp_path / "report.json"
-    code = runner.main(["normals", *[str(p) for p, _, _ in made.values()], "--out-dir", str(out_dir),
+    code = command_line.main(["normals", *[str(p) for p, _, _ in made.values()], "--out-dir", str(out_dir),
                         "--format", out_format, "--report", str(report), *map(str, _base_args(model_path))])
     captured = capsys.readouterr()
     assert code == 0, captured.err
@@ -165,7 +166,7 @@ def test_denoise_ply_keeps_properties_and_moves_points(tmp_path, model_path, tor
     before = src.read_bytes()
     out = tmp_path / "clean.ply"
     report = tmp_path / "r.json"
-    code = runner.main(["denoise", str(src), "-o", str(out), "--report", str(report),
+    code = command_line.main(["denoise", str(src), "-o", str(out), "--report", str(report),
                         "--patch-radius", "6", "--orient", "viewpoint", "--viewpoint", "0", "0", "5",
                         *map(str, _base_args(model_path))])
     captured = capsys.readouterr()
@@ -192,7 +193,7 @@ def test_in_place_keeps_a_backup(tmp_path, model_path, torus, capsys):
     src = tmp_path / "c.xyz"
     np.savetxt(src, torus, fmt="%.17g")
     original = src.read_bytes()
-    assert runner.main(["denoise", str(src), "--in-place", *map(str, _base_args(model_path))]) == 0
+    assert command_line.main(["denoise", str(src), "--in-place", *map(str, _base_args(model_path))]) == 0
     assert (tmp_path / "c.xyz.bak").read_bytes() == original
     assert src.read_bytes() != original
     assert (tmp_path / "c.normals").exists()
@@ -228,7 +229,7 @@ def _bad_files(folder, pts):
 def test_bad_input_one_line_exit_2_no_output(tmp_path, model_path, torus, name, capsys):
     problems = _bad_files(tmp_path / "in", torus)
     out = tmp_path / "out" / f"result{Path(name).suffix}"
-    code = runner.main(["denoise", str(tmp_path / "in" / name), "-o", str(out),
+    code = command_line.main(["denoise", str(tmp_path / "in" / name), "-o", str(out),
                         *map(str, _base_args(model_path))])
     err = capsys.readouterr().err
     assert code == 2
@@ -284,7 +285,7 @@ def test_missing_and_mismatched_model_exit_2(tmp_path, model_path, torus):
     cfg["encoder_channels"] = [16, 32]
     bad.with_suffix(".json").write_text(json.dumps(cfg))
     report = tmp_path / "r.json"
-    code = runner.main(["denoise", str(src), "-o", str(tmp_path / "b.npy"), "--model", str(bad),
+    code = command_line.main(["denoise", str(src), "-o", str(tmp_path / "b.npy"), "--model", str(bad),
                         "--report", str(report)])
     assert code == 2 and not (tmp_path / "b.npy").exists()
     data = json.loads(report.read_text())
@@ -312,32 +313,28 @@ def test_missing_and_mismatched_model_exit_2(tmp_path, model_path, torus):
 def test_usage_errors_exit_2(tmp_path, args, message, capsys, monkeypatch):
     monkeypatch.chdir(tmp_path)
     (tmp_path / "a.ply").write_bytes(b"")
-    assert runner.main(args) == 2
+    assert command_line.main(args) == 2
     err = capsys.readouterr().err
     assert message in err
     assert "Traceback" not in err
 
 
 def test_help_documents_exit_codes(capsys):
-    assert runner.main(["--help"]) == 0
+    assert command_line.main(["--help"]) == 0
     out = capsys.readouterr().out
     for text in ("exit codes:", "0    success", "2    bad input or usage", "3    a batch",
                  "blender -b -P standalone/run.py --", ".xyz", ".npy", ".blend"):
         assert text in out
-    assert runner.main(["denoise", "--help"]) == 0
+    assert command_line.main(["denoise", "--help"]) == 0
     out = capsys.readouterr().out
     for option in ("--model", "--iterations", "--patch-radius", "--orient", "--viewpoint",
                    "--device", "--threads", "--report", "--preview", "--objects", "--in-place"):
         assert option in out
 
 
-@pytest.mark.parametrize("command", sorted(runner.DISPATCH))
+@pytest.mark.parametrize("command", sorted(command_line.COMMANDS))
 def test_engine_commands_dispatch_help(command, capsys):
-    import importlib.util
-
-    if importlib.util.find_spec(runner.DISPATCH[command][0]) is None:
-        pytest.skip(f"{runner.DISPATCH[command][0]} not written yet")
-    assert runner.main([command, "--help"]) == 0
+    assert command_line.main([command, "--help"]) == 0
     assert "usage" in capsys.readouterr().out.lower()
 
 
@@ -354,7 +351,7 @@ class _Stream(io.StringIO):
 
 def test_progress_plain_lines_in_logs():
     stream = _Stream(tty=False)
-    progress = runner.Progress("cloud.ply", stream=stream)
+    progress = Progress("cloud.ply", stream=stream)
     for i in range(101):
         progress(i / 100, f"step {i}")
     progress.close()
@@ -366,7 +363,7 @@ def test_progress_plain_lines_in_logs():
 
 def test_progress_bar_on_terminal():
     stream = _Stream(tty=True)
-    progress = runner.Progress("cloud.ply", stream=stream)
+    progress = Progress("cloud.ply", stream=stream)
     for i in range(11):
         progress(i / 10, "network")
     progress.close()
@@ -376,7 +373,7 @@ def test_progress_bar_on_terminal():
 
 def test_no_progress():
     stream = _Stream(tty=True)
-    progress = runner.Progress("x", enabled=False, stream=stream)
+    progress = Progress("x", enabled=False, stream=stream)
     progress(0.5, "half")
     progress.close()
     assert stream.getvalue() == ""

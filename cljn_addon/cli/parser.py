@@ -1,0 +1,146 @@
+"""The argument parser of run.py: the denoise/normals options, the help text (formats and exit
+codes), and one sub-command per entry of main.COMMANDS."""
+from __future__ import annotations
+
+import argparse
+import math
+
+from ..core.config import DEVICE_CHOICES, ORIENTATIONS
+from ..core.formats import POINT_SUFFIXES
+
+PROG = "run.py"
+BLEND_SUFFIX = ".blend"
+ALL_SUFFIXES = POINT_SUFFIXES + (BLEND_SUFFIX,)
+
+EPILOG = """\
+invocation:
+  python standalone/run.py COMMAND ...            (Python 3.11 with the bpy wheel)
+  blender -b -P standalone/run.py -- COMMAND ...  (Blender 4.2 or newer)
+
+formats (by extension):
+  .ply    in: ascii and binary (little/big endian), any extra properties (kept)
+          out: binary little endian: x y z nx ny nz, the input's other properties,
+               cljn_outlier (uchar, 1 = flagged as outlier)
+  .xyz    in/out: "x y z" per line; normals in the sibling .normals file (PCPNet layout);
+          other properties are not written
+  .npy    in: (N,3), (N,6) x y z nx ny nz, or a structured array with x y z fields
+          out: (N,6) x y z nx ny nz in the input's float type
+  .blend  in: every point-cloud object (or --objects NAME...) is processed; other objects
+          are left alone; saved as a new .blend (or --in-place, keeping NAME.blend1)
+          out from a point file: a new scene holding the cloud as a mesh of vertices
+
+exit codes:
+  0    success
+  1    unexpected internal error (a bug; rerun with --debug and report it)
+  2    bad input or usage: unreadable/truncated/empty file, NaN coordinates, a .blend
+       without point clouds, a missing or mismatched model (also: every input of a batch
+       failed)
+  3    a batch where some inputs failed; the others were processed and written
+  130  interrupted (Ctrl-C); no partial output is left behind
+"""
+
+
+def _positive_int(text):
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
+    return value
+
+
+def _percent(text):
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not (0.0 < value <= 100.0) or not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"must be above 0 and at most 100 (percent), got {text}")
+    return value
+
+
+def _finite(text):
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"must be finite, got {text}")
+    return value
+
+
+def _add_cloud_options(p: argparse.ArgumentParser, normals_only: bool):
+    p.add_argument("inputs", nargs="+", metavar="INPUT",
+                   help="point clouds (.ply .xyz .npy) or Blender scenes (.blend)")
+    out = p.add_argument_group("output (one of -o, --out-dir, --in-place)")
+    dest = out.add_mutually_exclusive_group(required=True)
+    dest.add_argument("-o", "--output", metavar="OUTPUT",
+                      help="output file for a single input; its extension picks the format")
+    dest.add_argument("--out-dir", metavar="DIR",
+                      help="write each result as DIR/<input name> (created if missing)")
+    dest.add_argument("--in-place", action="store_true",
+                      help="replace each input, keeping a backup (NAME.blend1 for .blend, "
+                           "NAME.bak otherwise)")
+    out.add_argument("--format", choices=[s[1:] for s in ALL_SUFFIXES],
+                     help="with --out-dir: output format (default: the input's)")
+    out.add_argument("--report", metavar="FILE.json",
+                     help="write a machine-readable summary (per input: points, outliers, "
+                          "seconds, output path, status)")
+    out.add_argument("--preview", metavar="FILE.png",
+                     help="render a before/after picture (several clouds: FILE_<name>.png)")
+    out.add_argument("--preview-color", choices=["normal", "displacement"], default="normal",
+                     help="colour the result by normal (default) or by displacement")
+    blend = p.add_argument_group(".blend input")
+    blend.add_argument("--objects", nargs="+", metavar="NAME",
+                       help="process only these objects (default: every point-cloud object); "
+                            "put it after the inputs")
+    blend.add_argument("--use-mesh-vertices", action="store_true",
+                       help="treat the vertices of any mesh as a point cloud")
+    eng = p.add_argument_group("engine (as in the panel)")
+    eng.add_argument("--model", metavar="FILE.safetensors",
+                     help="weights file with its .json beside it (default: the shipped model)")
+    eng.add_argument("--iterations", type=_positive_int, default=4,
+                     help=("accepted for symmetry with denoise: normals take one network pass"
+                           if normals_only else
+                           "filtering iterations (default 4; 10 for very noisy scans)"))
+    eng.add_argument("--patch-radius", type=_percent, metavar="PERCENT",
+                     help="patch radius in percent of the bounding-box diagonal (default 5)")
+    eng.add_argument("--orient", choices=ORIENTATIONS, default="outward",
+                     help="normal orientation (default outward)")
+    eng.add_argument("--viewpoint", type=_finite, nargs=3, metavar=("X", "Y", "Z"),
+                     help="with --orient viewpoint: the scanner position (a .blend uses its "
+                          "scene camera when this is not given)")
+    eng.add_argument("--device", default="auto", type=str.lower, choices=DEVICE_CHOICES,
+                     metavar="DEVICE",
+                     help="auto (default), cpu, cuda, gpu or mps")
+    eng.add_argument("--threads", type=_positive_int, metavar="N",
+                     help="CPU threads for the network (torch.set_num_threads)")
+    eng.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    misc = p.add_argument_group("messages")
+    misc.add_argument("--no-progress", action="store_true", help="no progress bar or lines")
+    misc.add_argument("--debug", action="store_true", help="print tracebacks of internal errors")
+
+
+def build_parser(commands: dict) -> argparse.ArgumentParser:
+    """denoise and normals in full; the other commands (name -> (entry, help)) parse their own
+    arguments and are listed here for --help only."""
+    parser = argparse.ArgumentParser(
+        prog=PROG, formatter_class=argparse.RawDescriptionHelpFormatter,
+        description="CLJN Denoise: filter point clouds and estimate their normals with a "
+                    "learned network (contrastive learning for joint normal estimation and "
+                    "point-cloud filtering).",
+        epilog=EPILOG)
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    p = sub.add_parser("denoise", help="filter positions and estimate normals",
+                       formatter_class=argparse.RawDescriptionHelpFormatter, epilog=EPILOG,
+                       description="Filter positions and estimate normals of point clouds.")
+    _add_cloud_options(p, normals_only=False)
+    p = sub.add_parser("normals", help="estimate normals only (positions bit-identical)",
+                       formatter_class=argparse.RawDescriptionHelpFormatter, epilog=EPILOG,
+                       description="Estimate normals only; positions are written back "
+                                   "bit-identical.")
+    _add_cloud_options(p, normals_only=True)
+    for name, (_entry, text) in commands.items():
+        sub.add_parser(name, help=f"{text} (see: {PROG} {name} --help)", add_help=False)
+    return parser
