@@ -1,17 +1,24 @@
 """The eval command's protocol on a small synthetic set (no ../shared needed)."""
 import numpy as np
+import pytest
 import torch
 
 from cljn_addon.core import build_model
-from cljn_addon.core.evaluation.evaluate import evaluate, format_table
-from cljn_addon.core.evaluation.shapes import shape_mesh
+from cljn_addon.core.evaluation.baselines import jet_smooth, jet_smoothing_available
+from cljn_addon.core.evaluation.evaluate import evaluate, format_table, gap_closed
+from cljn_addon.core.evaluation.metrics import MeshDistance, chamfer
+from cljn_addon.core.evaluation.shapes import sample_shape, shape_mesh
 
 
-def test_evaluate_reports_a_floor_no_method_beats():
+@pytest.fixture(scope="module")
+def result():
     torch.manual_seed(0)
-    shapes = [(name, *shape_mesh(name)) for name in ("box", "octahedron")]
-    result = evaluate(shapes, build_model("tiny").eval(), levels=(0.015,), n_points=4000,
-                      iterations=1, log=lambda m: None, tune=False)
+    shapes = [(name, *shape_mesh(name)) for name in ("box", "thin_plate")]
+    return evaluate(shapes, build_model("tiny").eval(), levels=(0.015,), n_points=4000,
+                    iterations=1, log=lambda m: None, tune=False)
+
+
+def test_evaluate_reports_a_floor_no_method_beats(result):
     row = result["levels"][0]
     for shape in row["shapes"]:
         assert shape["msae_floor"] < shape["msae_pca"], shape
@@ -20,3 +27,36 @@ def test_evaluate_reports_a_floor_no_method_beats():
     assert np.isclose(row["msae_floor"], np.mean([s["msae_floor"] for s in row["shapes"]]))
     table = format_table(result)
     assert "MSAE floor" in table and f"{row['msae_floor']:.4f}" in table
+
+
+def test_evaluate_compares_with_every_classic_filter_and_flags_worse_than_input(result):
+    row = result["levels"][0]
+    expected = ["plane", "jet"] if jet_smoothing_available() else ["plane"]
+    assert result["filters"] == expected
+    assert row["cd_classic"] == min(row[f"cd_{f}"] for f in expected)
+    for shape in row["shapes"]:
+        worse = shape["cd_ours"] >= shape["cd_noisy"] or shape["p2s_ours"] >= shape["p2s_noisy"]
+        assert (shape["shape"] in row["worse_than_input"]) == worse
+        assert 0 < shape["out_msae_classic"] < 1 and 0 < shape["out_msae_ours"]
+    assert gap_closed(row) == pytest.approx((row["msae_pca"] - row["msae_ours"]) / (row["msae_pca"] - row["msae_floor"]))
+    table = format_table(result)
+    assert "out ours/classic" in table and "thin_plate" in table
+
+
+def test_output_normal_truth_is_the_nearest_face():
+    v, f = shape_mesh("box")
+    dist = MeshDistance(v, f)
+    points = np.array([[0.0, 0.0, 0.3], [0.0, 0.0, -0.3]])
+    d, normals = dist.nearest(points)
+    assert np.allclose(d, dist.distance(points))
+    assert np.allclose(normals[:, 2], [1.0, -1.0])
+
+
+@pytest.mark.skipif(not jet_smoothing_available(), reason="the cgal package is not installed")
+def test_jet_smoothing_baseline_cleans_a_curved_surface():
+    noisy, clean, _ = sample_shape("sphere", 20000, noise=0.01, seed=2)
+    jet = jet_smooth(noisy, 30)
+    assert jet.shape == noisy.shape
+    assert chamfer(jet, clean) < 0.5 * chamfer(noisy, clean)
+    # Same order as the input: each output point stays near its own noisy point.
+    assert np.linalg.norm(jet - noisy, axis=1).max() < 0.05

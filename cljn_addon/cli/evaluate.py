@@ -22,7 +22,10 @@ def main(argv=None):
     parser.add_argument("--iterations", type=int, default=4)
     parser.add_argument("--synthetic", nargs="*", default=None, metavar="SHAPE",
                         help="evaluate built-in shapes instead of a folder")
-    parser.add_argument("--no-tune", action="store_true", help="fixed k=60 baselines (fast)")
+    parser.add_argument("--no-thin", action="store_true",
+                        help="skip the thin-part block (plate, open box, tube, L-bracket, stool)")
+    parser.add_argument("--thin-only", action="store_true", help="only the thin-part block")
+    parser.add_argument("--no-tune", action="store_true", help="fixed-k baselines (fast)")
     parser.add_argument("--json", default=None, help="also write the full result as JSON")
     parser.add_argument("--threads", type=int, default=None)
     args = parser.parse_args(argv)
@@ -30,24 +33,31 @@ def main(argv=None):
         import torch
         torch.set_num_threads(args.threads)
     from ..core.evaluation.evaluate import evaluate, format_table
-    from ..core.evaluation.shapes import shape_mesh
+    from ..core.evaluation.shapes import THIN_SHAPES, shape_mesh
     from ..core.formats.meshes import find_meshes, read_mesh
     from ..core.model import load_model
     try:
         model = load_model(args.model)
-        if args.synthetic:
-            shapes = [(n, *shape_mesh(n)) for n in args.synthetic]
-        else:
-            shapes = [(p.stem, *read_mesh(p)) for p in find_meshes(args.mesh_dir)]
-            if not shapes:
-                raise InputError(f"{args.mesh_dir}: no meshes found")
-    except (InputError, ModelNotFoundError, ModelMismatchError) as exc:
+        blocks = {}
+        if not args.thin_only:
+            if args.synthetic:
+                blocks["synthetic"] = [(n, *shape_mesh(n)) for n in args.synthetic]
+            else:
+                blocks["validation"] = [(p.stem, *read_mesh(p)) for p in find_meshes(args.mesh_dir)]
+                if not blocks["validation"]:
+                    raise InputError(f"{args.mesh_dir}: no meshes found")
+        if not args.no_thin:
+            blocks["thin_parts"] = [(n, *shape_mesh(n)) for n in THIN_SHAPES]
+    except (InputError, ModelNotFoundError, ModelMismatchError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    result = evaluate(shapes, model, [x / 100 for x in args.levels], args.points, args.iterations,
-                      log=lambda m: print(m, flush=True), tune=not args.no_tune)
-    print(format_table(result))
+    results = {}
+    for name, shapes in blocks.items():
+        print(f"== {name} ({len(shapes)} shapes)", flush=True)
+        results[name] = evaluate(shapes, model, [x / 100 for x in args.levels], args.points, args.iterations,
+                                 log=lambda m: print(m, flush=True), tune=not args.no_tune)
+    for name, result in results.items():
+        print(f"\n## {name}\n\n{format_table(result)}")
     if args.json:
-        Path(args.json).write_text(json.dumps(result, indent=2))
+        Path(args.json).write_text(json.dumps(results, indent=2))
     return 0
-

@@ -17,6 +17,7 @@ from .config import INFLATION_NEIGHBOURS, LRMA_NEIGHBOURS, MIN_BALL_POINTS
 from .device import autocast, pick_device
 from .errors import Cancelled, InputError
 from .model import inference_net
+from .noise import DISPLACEMENT_BOUND_SIGMAS, clamp_displacement, estimate_noise_sigma
 from .orient import ORIENTATIONS, orient_normals
 from .patches import PatchSource, bbox_diagonal, from_frame, make_patches
 from .refine import inflation, lrma_update
@@ -32,6 +33,8 @@ class DenoiseResult:
     displacement: np.ndarray  # (N,) float64: distance each point moved
     seconds: float
     iterations: int
+    noise_sigma: float = float("nan")        # estimated scanner noise (cloud units)
+    displacement_bound: float = float("inf")  # no point moved further than this
 
 
 def validate_points(points) -> np.ndarray:
@@ -92,7 +95,7 @@ def network_pass(model, points, radius, rng, device, points_per_patch=None, repo
 
 def denoise(points, model, iterations=4, *, patch_radius=None, patch_radius_fraction=None,
             points_per_patch=None, normals_only=False, orientation="outward", viewpoint=None,
-            device="auto", progress=None, cancel=None, seed=0, refine=True):
+            device="auto", progress=None, cancel=None, seed=0, refine=True, max_displacement=None):
     """Filter a noisy cloud and estimate oriented normals.
 
     points: (N, 3) array, any units. patch_radius: absolute radius; otherwise
@@ -101,6 +104,10 @@ def denoise(points, model, iterations=4, *, patch_radius=None, patch_radius_frac
     'outward', 'viewpoint' (needs viewpoint=(x, y, z)) or 'none'. progress(fraction, message)
     is called as work proceeds; setting `cancel` (a threading.Event) raises Cancelled.
     refine=False skips inflation and the LRMA update (the network output alone).
+    max_displacement: no point ends further than this from where it was (cloud units); by
+    default 3 x the noise sigma estimated from the cloud (`noise.estimate_noise_sigma`), so a
+    network that is wrong somewhere can under-clean there but not drag points away; pass
+    float("inf") for the unbounded paper behaviour.
     """
     t0 = time.time()
     original = validate_points(points)
@@ -131,6 +138,14 @@ def denoise(points, model, iterations=4, *, patch_radius=None, patch_radius_frac
         raise InputError("no point has enough neighbours within the patch radius; "
                          "raise the patch radius or check the cloud's units")
     current = original[inliers].copy()
+    sigma = float("nan")
+    bound = float("inf") if normals_only else max_displacement
+    if bound is None:
+        report(0.0, "estimating the noise level")
+        sigma = estimate_noise_sigma(current, radius0, seed=seed)
+        bound = DISPLACEMENT_BOUND_SIGMAS * sigma
+    elif not bound > 0:
+        raise InputError(f"max displacement must be a positive number, got {max_displacement!r}")
     normals = None
     for it in range(iterations):
         radius = patch_radius or fraction * bbox_diagonal(current)
@@ -155,7 +170,7 @@ def denoise(points, model, iterations=4, *, patch_radius=None, patch_radius_frac
             filtered = lrma_update(filtered, normals, LRMA_NEIGHBOURS)
         if cancel is not None and cancel.is_set():
             raise Cancelled("cancelled")
-        current = filtered
+        current = clamp_displacement(filtered, original[inliers], bound)
 
     out_points = original.copy()
     if not normals_only:
@@ -172,7 +187,8 @@ def denoise(points, model, iterations=4, *, patch_radius=None, patch_radius_frac
     displacement = np.linalg.norm(out_points - original, axis=1)
     report(1.0, "done")
     return DenoiseResult(points=out_points, normals=all_normals.astype(np.float32), outliers=outliers,
-                         displacement=displacement, seconds=time.time() - t0, iterations=iterations)
+                         displacement=displacement, seconds=time.time() - t0, iterations=iterations,
+                         noise_sigma=sigma, displacement_bound=bound)
 
 
 def estimate_normals(points, model, **options):

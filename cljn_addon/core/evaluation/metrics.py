@@ -93,15 +93,30 @@ class MeshDistance:
         self.k = candidates
 
     def distance(self, points, chunk=20000):
-        out = np.empty(len(points))
+        return self.nearest(points, chunk)[0]
+
+    def nearest(self, points, chunk=20000):
+        """(distance to the mesh, normal of the nearest face) for every point."""
+        dist = np.empty(len(points))
+        face = np.empty(len(points), np.int64)
         for s in range(0, len(points), chunk):
             p = points[s:s + chunk]
             _, idx = self.tree.query(p, k=self.k, workers=-1)
-            tri = self.f[self.sample_face[idx]]                   # (M, k, 3)
+            cand = self.sample_face[idx]                          # (M, k) face ids
+            tri = self.f[cand]                                    # (M, k, 3)
             a, b, c = self.v[tri[..., 0]], self.v[tri[..., 1]], self.v[tri[..., 2]]
             q = closest_point_on_triangles(np.broadcast_to(p[:, None, :], a.shape), a, b, c)
-            out[s:s + chunk] = np.linalg.norm(q - p[:, None, :], axis=2).min(axis=1)
-        return out
+            d = np.linalg.norm(q - p[:, None, :], axis=2)
+            best = d.argmin(axis=1)
+            dist[s:s + chunk] = d[np.arange(len(p)), best]
+            face[s:s + chunk] = cand[np.arange(len(p)), best]
+        return dist, self.face_normals[face]
+
+    @property
+    def face_normals(self):
+        if not hasattr(self, "_face_normals"):
+            self._face_normals = face_normals_and_areas(self.v, self.f)[0]
+        return self._face_normals
 
 
 def point2surface(points, vertices, faces):

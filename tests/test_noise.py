@@ -1,0 +1,60 @@
+"""Noise estimation and the displacement bound that keeps a wrong prediction from wrecking a scan."""
+import numpy as np
+import pytest
+import torch
+
+from cljn_addon.core import InputError, build_model, denoise
+from cljn_addon.core.evaluation.shapes import sample_shape
+from cljn_addon.core.noise import DISPLACEMENT_BOUND_SIGMAS, clamp_displacement, estimate_noise_sigma
+from cljn_addon.core.patches import bbox_diagonal
+
+
+@pytest.mark.parametrize("name", ["sphere", "box", "torus"])
+@pytest.mark.parametrize("sigma", [0.005, 0.01, 0.02])
+def test_noise_estimate_is_close_to_the_true_sigma(name, sigma):
+    noisy, _, _ = sample_shape(name, 30000, noise=sigma, seed=3)
+    est = estimate_noise_sigma(noisy, 0.05 * bbox_diagonal(noisy))
+    assert 0.75 * sigma < est < 1.3 * sigma
+
+
+def test_noise_estimate_is_in_cloud_units_and_ignores_where_the_cloud_is():
+    noisy, _, _ = sample_shape("box", 20000, noise=0.01, seed=4)
+    base = estimate_noise_sigma(noisy, 0.05 * bbox_diagonal(noisy))
+    # A georeferenced scan in metres: 40 m across, half a million metres from the origin.
+    far = noisy * 40.0 + np.array([512_345.0, 5_401_234.0, 312.0])
+    moved = estimate_noise_sigma(far, 0.05 * bbox_diagonal(far))
+    assert np.isclose(moved, 40.0 * base, rtol=1e-3)
+
+
+def test_clean_cloud_has_almost_no_noise():
+    _, clean, _ = sample_shape("box", 20000, seed=5)
+    assert estimate_noise_sigma(clean, 0.05) < 1e-4
+
+
+def test_clamp_keeps_direction_and_caps_length():
+    original = np.zeros((3, 3))
+    moved = np.array([[0.1, 0, 0], [0, 3.0, 4.0], [0, 0, -0.5]])
+    out = clamp_displacement(moved, original, 1.0)
+    assert np.allclose(out[0], moved[0])
+    assert np.allclose(out[1], [0, 0.6, 0.8])
+    assert np.allclose(out[2], [0, 0, -0.5])
+
+
+def test_denoise_never_moves_a_point_beyond_the_bound():
+    torch.manual_seed(0)
+    noisy, _, _ = sample_shape("stepped_block", 6000, noise=0.01, seed=6)
+    model = build_model("tiny").eval()          # untrained: its displacements are arbitrary
+    res = denoise(noisy, model, iterations=3)
+    assert 0.005 < res.noise_sigma < 0.02
+    assert np.isclose(res.displacement_bound, DISPLACEMENT_BOUND_SIGMAS * res.noise_sigma)
+    assert res.displacement.max() <= res.displacement_bound * (1 + 1e-9)
+    tight = denoise(noisy, model, iterations=3, max_displacement=0.001)
+    assert tight.displacement.max() <= 0.001 * (1 + 1e-9)
+    free = denoise(noisy, model, iterations=3, max_displacement=float("inf"))
+    assert free.displacement.max() > tight.displacement.max()
+
+
+def test_bad_displacement_bound_is_refused():
+    noisy, _, _ = sample_shape("box", 500, noise=0.01, seed=6)
+    with pytest.raises(InputError, match="max displacement"):
+        denoise(noisy, build_model("tiny").eval(), max_displacement=-1.0)
