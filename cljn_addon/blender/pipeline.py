@@ -62,8 +62,33 @@ def write_back(snap: Snapshot, result, normals_only=False) -> list:
 
 # ------------------------------------------------------------------------- panel -> options
 
-def camera_viewpoint(scene) -> tuple | None:
-    """The active scene camera's position (world space), or None without one."""
+def file_objects(names=None, use_mesh_vertices=False) -> list:
+    """The point clouds of the open file to process: the named ones (each must be one), or
+    every point-cloud object. InputError saying what is wrong otherwise."""
+    found = object_io.point_cloud_objects(bpy.data.objects, use_mesh_vertices)
+    if not names:
+        if not found:
+            raise InputError("no point-cloud objects in this .blend"
+                             + ("" if use_mesh_vertices else
+                                " (--use-mesh-vertices takes any mesh's vertices)"))
+        return found
+    chosen = []
+    for name in names:
+        obj = bpy.data.objects.get(name)
+        if obj is None:
+            raise InputError(f"no object named {name!r} (point clouds here: "
+                             f"{', '.join(o.name for o in found) or 'none'})")
+        reason = object_io.check_point_cloud(obj, use_mesh_vertices)
+        if reason is not None:
+            raise InputError(reason)
+        chosen.append(obj)
+    return chosen
+
+
+def camera_viewpoint(scene=None) -> tuple | None:
+    """The active camera's position (world space) of scene (default: the current one), or
+    None without one."""
+    scene = scene if scene is not None else bpy.context.scene
     if scene is None or scene.camera is None:
         return None
     return tuple(scene.camera.matrix_world.translation)

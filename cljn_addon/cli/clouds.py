@@ -324,14 +324,12 @@ class CloudCommand:
     def _run_blend(self, job):
         import numpy as np
 
-        blendfile, object_io, pipeline = _blender()
+        blendfile, _object_io, pipeline = _blender()
         blendfile.open_blend(job.input)
-        objects = self._blend_objects(job, object_io)
+        objects = pipeline.file_objects(self.args.objects, self.args.use_mesh_vertices)
         options = self.options
         if options.orientation == "viewpoint" and options.viewpoint is None:   # "Toward Camera"
-            import bpy
-
-            viewpoint = pipeline.camera_viewpoint(bpy.context.scene)
+            viewpoint = pipeline.camera_viewpoint()
             if viewpoint is None:
                 raise InputError(f"{job.input}: --orient viewpoint needs --viewpoint X Y Z "
                                  "(the scene has no camera to use instead)")
@@ -360,30 +358,6 @@ class CloudCommand:
                                                 weights=[o["points"] for o in per_object]))),
             seconds=round(sum(o["seconds"] for o in per_object), 3))
         out(f"{job.input}: {len(per_object)} point-cloud object(s) -> {job.output}")
-
-    def _blend_objects(self, job, object_io):
-        import bpy
-
-        use_verts = self.args.use_mesh_vertices
-        if not self.args.objects:
-            chosen = list(object_io.point_cloud_objects(bpy.data.objects, use_verts))
-            if not chosen:
-                raise InputError(f"{job.input}: no point-cloud objects in this .blend"
-                                 + ("" if use_verts else
-                                    " (--use-mesh-vertices takes any mesh's vertices)"))
-            return chosen
-        chosen = []
-        for name in self.args.objects:
-            obj = bpy.data.objects.get(name)
-            if obj is None:
-                found = [o.name for o in object_io.point_cloud_objects(bpy.data.objects, use_verts)]
-                raise InputError(f"{job.input}: no object named {name!r} (point clouds "
-                                 f"here: {', '.join(found) or 'none'})")
-            reason = object_io.check_point_cloud(obj, use_verts)
-            if reason is not None:
-                raise InputError(f"{job.input}: {reason}")
-            chosen.append(obj)
-        return chosen
 
     # ------------------------------------------------------------------ previews
     def _write_previews(self):
