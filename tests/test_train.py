@@ -111,3 +111,19 @@ def test_unknown_normal_target_is_refused(tmp_path):
 
     with pytest.raises(InputError, match="normal target"):
         train_model(SHAPES, tmp_path / "run", cache_dir=None, **dict(TINY_RUN, normal_target="furthest"))
+
+
+def test_own_side_ground_truth_drops_the_far_side_of_a_thin_plate():
+    from cljn_addon.core.training.data import load_clean_cloud, make_training_shape, regression_batch
+
+    clean, normals = load_clean_cloud("shape:thin_plate", 20000, seed=0)
+    shape = make_training_shape("plate", clean, normals, 64, 0.05, seed=1, noise_levels=(0.0, 0.005))
+    rng = np.random.default_rng(0)
+    _, gt_all, n_all, _, tgt_n = regression_batch([shape], 256, 128, rng)
+    rng = np.random.default_rng(0)
+    _, gt_own, n_own, _, tgt_n2 = regression_batch([shape], 256, 128, rng, own_side=True)
+    cos_all = np.einsum("bmc,bc->bm", n_all, tgt_n)
+    cos_own = np.einsum("bmc,bc->bm", n_own, tgt_n2)
+    assert (cos_all < -0.9).mean() > 0.2            # a 1.5% plate: the far side is in every ball
+    assert (cos_own < -0.5).sum() == 0               # ... and gone from the own-side truth
+    assert np.allclose(np.linalg.norm(n_own, axis=2), 1.0, atol=1e-5)

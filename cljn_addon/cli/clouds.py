@@ -8,6 +8,8 @@ Denoise Points operator runs. numpy, torch and bpy are imported when a batch run
 """
 from __future__ import annotations
 
+import math
+
 import os
 import re
 import shutil
@@ -46,7 +48,8 @@ def options_from_args(args) -> DenoiseOptions:
         iterations=args.iterations,
         patch_radius_fraction=None if args.patch_radius is None else args.patch_radius / 100.0,
         orientation=args.orient, viewpoint=args.viewpoint, device=args.device, seed=args.seed,
-        normals_only=args.command == "normals", model_path=args.model)
+        normals_only=args.command == "normals", model_path=args.model,
+        max_displacement=getattr(args, "max_displacement", None))
 
 
 def _same_file(a: Path, b: Path) -> bool:
@@ -257,12 +260,18 @@ class CloudCommand:
         outliers = int(np.count_nonzero(res.outliers))
         disp = float(np.mean(res.displacement)) if n else 0.0
         seconds = float(getattr(res, "seconds", 0.0) or 0.0)
+        sigma = float(getattr(res, "noise_sigma", float("nan")))
+        bound = float(getattr(res, "displacement_bound", float("inf")))
         line = (f"{label}: {n} points, {outliers} outliers flagged, "
                 f"mean displacement {disp:.4g}, {seconds:.1f} s")
+        if math.isfinite(sigma):
+            line += f"; estimated noise {sigma:.4g}, no point moved more than {bound:.4g}"
         if output is not None:
             line += f" -> {output}"
         out(line)
         return {"points": n, "outliers": outliers, "mean_displacement": disp,
+                "noise_sigma": sigma if math.isfinite(sigma) else None,
+                "displacement_bound": bound if math.isfinite(bound) else None,
                 "seconds": round(seconds, 3)}
 
     def _keep_preview(self, job, label, before, res):

@@ -60,6 +60,16 @@ def _percent(text):
     return value
 
 
+def _positive_float(text):
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"must be above 0, got {text}")
+    return value
+
+
 def _finite(text):
     try:
         value = float(text)
@@ -106,6 +116,10 @@ def _add_cloud_options(p: argparse.ArgumentParser, normals_only: bool):
                            "filtering iterations (default 4; 10 for very noisy scans)"))
     eng.add_argument("--patch-radius", type=_percent, metavar="PERCENT",
                      help="patch radius in percent of the bounding-box diagonal (default 5)")
+    if not normals_only:
+        eng.add_argument("--max-displacement", type=_positive_float, metavar="DISTANCE",
+                         help="no point moves further than this, in the cloud's units (default: "
+                              "3 x the noise level estimated from the cloud)")
     eng.add_argument("--orient", choices=ORIENTATIONS, default="outward",
                      help="normal orientation (default outward)")
     eng.add_argument("--viewpoint", type=_finite, nargs=3, metavar=("X", "Y", "Z"),

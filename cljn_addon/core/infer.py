@@ -13,12 +13,12 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
-from .config import INFLATION_NEIGHBOURS, LRMA_NEIGHBOURS, MIN_BALL_POINTS
+from .config import INFLATION_NEIGHBOURS, LRMA_NEIGHBOURS, MIN_BALL_POINTS, ORIENTATIONS
 from .device import autocast, pick_device
 from .errors import Cancelled, InputError
 from .model import inference_net
 from .noise import DISPLACEMENT_BOUND_SIGMAS, clamp_displacement, estimate_noise_sigma
-from .orient import ORIENTATIONS, orient_normals
+from .orient import orient_normals
 from .patches import PatchSource, bbox_diagonal, from_frame, make_patches
 from .refine import inflation, lrma_update
 
@@ -93,14 +93,25 @@ def network_pass(model, points, radius, rng, device, points_per_patch=None, repo
     return disp, normals
 
 
-def denoise(points, model, iterations=4, *, patch_radius=None, patch_radius_fraction=None,
-            points_per_patch=None, normals_only=False, orientation="outward", viewpoint=None,
-            device="auto", progress=None, cancel=None, seed=0, refine=True, max_displacement=None):
-    """Filter a noisy cloud and estimate oriented normals.
+def denoise(points, model, iterations=4, **options):
+    """Filter a noisy cloud and estimate oriented normals (options: see `_run`)."""
+    return _run(points, model, iterations, move_points=True, **options)
+
+
+def estimate_normals(points, model, **options):
+    """Normals only: one network pass, positions untouched (bit-identical)."""
+    options.pop("iterations", None)
+    return _run(points, model, 1, move_points=False, **options)
+
+
+def _run(points, model, iterations, *, move_points, patch_radius=None, patch_radius_fraction=None,
+         points_per_patch=None, orientation="outward", viewpoint=None,
+         device="auto", progress=None, cancel=None, seed=0, refine=True, max_displacement=None):
+    """The engine behind `denoise` (move_points=True) and `estimate_normals` (False).
 
     points: (N, 3) array, any units. patch_radius: absolute radius; otherwise
     patch_radius_fraction (default: the model's, 5%) of the bbox diagonal, recomputed each
-    iteration. normals_only: one pass, positions returned bit-identical. orientation:
+    iteration. move_points=False: one pass, positions returned bit-identical. orientation:
     'outward', 'viewpoint' (needs viewpoint=(x, y, z)) or 'none'. progress(fraction, message)
     is called as work proceeds; setting `cancel` (a threading.Event) raises Cancelled.
     refine=False skips inflation and the LRMA update (the network output alone).
@@ -115,7 +126,7 @@ def denoise(points, model, iterations=4, *, patch_radius=None, patch_radius_frac
         raise InputError(f"unknown orientation {orientation!r}; choose one of {', '.join(ORIENTATIONS)}")
     if orientation == "viewpoint" and viewpoint is None:
         raise InputError("orientation 'viewpoint' needs a viewpoint (x, y, z)")
-    iterations = 1 if normals_only else int(iterations)
+    iterations = int(iterations) if move_points else 1
     if iterations < 1:
         raise InputError(f"iterations must be at least 1, got {iterations}")
     if patch_radius is not None and not (np.isfinite(patch_radius) and patch_radius > 0):
@@ -139,7 +150,7 @@ def denoise(points, model, iterations=4, *, patch_radius=None, patch_radius_frac
                          "raise the patch radius or check the cloud's units")
     current = original[inliers].copy()
     sigma = float("nan")
-    bound = float("inf") if normals_only else max_displacement
+    bound = max_displacement if move_points else float("inf")
     if bound is None:
         report(0.0, "estimating the noise level")
         sigma = estimate_noise_sigma(current, radius0, seed=seed)
@@ -161,7 +172,7 @@ def denoise(points, model, iterations=4, *, patch_radius=None, patch_radius_frac
             flip = np.einsum("ij,ij->i", new_normals, normals) < 0
             new_normals[flip] *= -1
         normals = new_normals
-        if normals_only:
+        if not move_points:
             break
         filtered = current + disp
         if refine:
@@ -173,7 +184,7 @@ def denoise(points, model, iterations=4, *, patch_radius=None, patch_radius_frac
         current = clamp_displacement(filtered, original[inliers], bound)
 
     out_points = original.copy()
-    if not normals_only:
+    if move_points:
         out_points[inliers] = current
     all_normals = np.empty_like(original)
     all_normals[inliers] = normals
@@ -189,10 +200,3 @@ def denoise(points, model, iterations=4, *, patch_radius=None, patch_radius_frac
     return DenoiseResult(points=out_points, normals=all_normals.astype(np.float32), outliers=outliers,
                          displacement=displacement, seconds=time.time() - t0, iterations=iterations,
                          noise_sigma=sigma, displacement_bound=bound)
-
-
-def estimate_normals(points, model, **options):
-    """Normals only: one network pass, positions untouched (bit-identical)."""
-    options.pop("iterations", None)
-    options["normals_only"] = True
-    return denoise(points, model, iterations=1, **options)

@@ -26,7 +26,9 @@ class DenoiseOptions:
     """iterations: filtering passes (ignored when normals_only). patch_radius_fraction: of the
     bbox diagonal, None for the model's own (5%). orientation: one of config.ORIENTATIONS;
     'viewpoint' needs viewpoint=(x, y, z) in world space. model_path: None for the shipped model.
-    normals_only: estimate normals, positions untouched (core.estimate_normals)."""
+    normals_only: estimate normals, positions untouched (core.estimate_normals).
+    max_displacement: cap on how far any point moves (cloud units); None for 3 x the noise
+    sigma estimated from the cloud."""
 
     iterations: int = 4
     patch_radius_fraction: float | None = None
@@ -36,6 +38,7 @@ class DenoiseOptions:
     seed: int = 0
     normals_only: bool = False
     model_path: str | None = None
+    max_displacement: float | None = None
 
     def __post_init__(self):
         if self.orientation not in ORIENTATIONS:
@@ -53,6 +56,8 @@ class DenoiseOptions:
                       seed=self.seed)
         if not self.normals_only:
             kwargs["iterations"] = self.iterations
+            if self.max_displacement is not None:
+                kwargs["max_displacement"] = self.max_displacement
         if self.patch_radius_fraction is not None:
             kwargs["patch_radius_fraction"] = self.patch_radius_fraction
         return kwargs

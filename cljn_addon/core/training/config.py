@@ -31,6 +31,7 @@ class TrainConfig:
     normal_target: str = "nearest"          # paper: clean point nearest the prediction; or "index"
     normal_loss: str = "paper"              # paper: 1 - d cos^2 - (1-d) cos^g; or "squared_angle"
     gt_points: int = 256                    # clean points per ground-truth patch
+    gt_side: str = "all"                    # paper: every clean point of the ball; or "own" (see data.py)
     noise_levels: str = "paper"             # paper: 0, .25, .5, 1, 1.5, 2.5%; or "dense" (9 levels)
     seed: int = 0
     init_weights: str = ""                  # start from a trained model (e.g. to fine-tune further)

@@ -132,8 +132,19 @@ def contrastive_batch(shapes, batch_pairs, rng):
     return p.astype(np.float32), q.astype(np.float32)
 
 
-def regression_batch(shapes, batch, gt_points, rng):
+# Ground truth from "the centre's own side" only: clean points whose normal is within 120
+# degrees of the normal at the centre's origin. Both faces of a 90-degree edge stay in; the
+# far side of a thin wall, plate or spike tip (normals ~180 degrees apart) goes out.
+OWN_SIDE_COS = -0.5
+
+
+def regression_batch(shapes, batch, gt_points, rng, own_side=False):
     """Noisy patches and their clean ground truth in the same frame.
+
+    own_side=True (ours) keeps in the ground truth only the clean surface on the centre's
+    own side of a thin part (see OWN_SIDE_COS). With both sides in, the joint loss's min term
+    is indifferent to which sheet a point lands on and its max term (the farthest clean point)
+    is smallest between the sheets, so training teaches the network to collapse thin parts.
 
     Returns patches (B, n, 3), gt (B, m, 3), gt_normals (B, m, 3), target (B, 3) and
     target_normal (B, 3) (the clean point of the same index, for the fixed-target ablation).
@@ -159,6 +170,8 @@ def regression_batch(shapes, batch, gt_points, rng):
             # Clean points of the same ball, sampled like a patch but with its own size;
             # normalised by the noisy patch's radius. Normals come along through the index.
             g_loc, g_idx = _gather_with_index(clean_source, centres, source.radius, gt_points, rng)
+            if own_side:
+                g_loc, g_idx = _keep_own_side(g_loc, g_idx, shape.normals, shape.normals[centre_idx[sel]], rng)
             gt[rows[sel]] = g_loc
             gt_n[rows[sel]] = shape.normals[g_idx]
             target[rows[sel]] = (shape.clean[centre_idx[sel]] - centres) / source.radius
@@ -167,6 +180,20 @@ def regression_batch(shapes, batch, gt_points, rng):
     return (to_frame(local, frames).astype(np.float32), to_frame(gt, frames).astype(np.float32),
             to_frame(gt_n, frames).astype(np.float32), to_frame(target, frames).astype(np.float32),
             to_frame(target_n, frames).astype(np.float32))
+
+
+def _keep_own_side(local, idx, normals, own_normal, rng):
+    """Replace ground-truth points from the far side by random own-side points of the same
+    ball (repetition changes neither the loss's min nor its max). Balls with no own-side
+    point at all are left as they are."""
+    same = np.einsum("bmc,bc->bm", normals[idx], own_normal) > OWN_SIDE_COS
+    count = same.sum(axis=1)
+    order = np.argsort(np.where(same, rng.random(same.shape), 2.0), axis=1)   # own side first
+    pick = np.floor(rng.random(same.shape) * np.maximum(count, 1)[:, None]).astype(np.int64)
+    donor = np.take_along_axis(order, pick, axis=1)
+    replace = ~same & (count[:, None] > 0)
+    cols = np.where(replace, donor, np.arange(same.shape[1])[None, :])
+    return np.take_along_axis(local, cols[..., None], axis=1), np.take_along_axis(idx, cols, axis=1)
 
 
 def _gather_with_index(clean_source: PatchSource, centres, radius, m, rng):

@@ -93,6 +93,8 @@ def make_config(config: TrainConfig | None = None, quick=False, **overrides) -> 
         raise InputError(f"unknown normal target {cfg.normal_target!r} (nearest or index)")
     if cfg.normal_loss not in NORMAL_LOSSES:
         raise InputError(f"unknown normal loss {cfg.normal_loss!r} ({' or '.join(NORMAL_LOSSES)})")
+    if cfg.gt_side not in ("all", "own"):
+        raise InputError(f"unknown ground-truth side {cfg.gt_side!r} (all or own)")
     if cfg.noise_levels not in NOISE_LEVEL_SETS:
         raise InputError(f"unknown noise levels {cfg.noise_levels!r} ({' or '.join(NOISE_LEVEL_SETS)})")
     return cfg
@@ -182,7 +184,8 @@ class _Run:
         cfg, model, dev = self.cfg, self.model, self.device
         if not cfg.finetune_encoder:
             model.encoder.eval()          # frozen: BatchNorm uses its running stats
-        patches, gt, gt_n, tgt, tgt_n = regression_batch(shapes, cfg.regression_batch, cfg.gt_points, self.rng)
+        patches, gt, gt_n, tgt, tgt_n = regression_batch(shapes, cfg.regression_batch, cfg.gt_points, self.rng,
+                                                           own_side=cfg.gt_side == "own")
         with autocast(dev, cfg.bf16):
             with torch.enable_grad() if cfg.finetune_encoder else torch.no_grad():
                 feats = model.encoder(torch.from_numpy(patches).to(dev))
