@@ -42,3 +42,20 @@ def test_orientation_bad_options():
         orient_normals(pts, pts, "viewpoint")
     with pytest.raises(InputError, match="unknown orientation"):
         orient_normals(pts, pts, "inward")
+
+
+def test_outward_orientation_of_a_gear_with_sharp_teeth():
+    noisy, _, truth = sample_shape("gear", 30000, noise=0.006, seed=8)
+    rng = np.random.default_rng(0)
+    scrambled = truth * np.where(rng.random(len(truth)) < 0.5, -1.0, 1.0)[:, None]
+    assert sign_agreement(orient_normals(noisy, scrambled, "outward"), truth) >= 0.99
+
+
+@pytest.mark.xfail(strict=True, reason="issue #12: the two sides of a thin spike or wall share a "
+                                       "neighbourhood and are joined with the wrong sign (~50%)")
+@pytest.mark.parametrize("name", ["star_prism", "thin_plate"])
+def test_outward_orientation_of_thin_parts(name):
+    noisy, _, truth = sample_shape(name, 30000, noise=0.006, seed=8)
+    rng = np.random.default_rng(0)
+    scrambled = truth * np.where(rng.random(len(truth)) < 0.5, -1.0, 1.0)[:, None]
+    assert sign_agreement(orient_normals(noisy, scrambled, "outward"), truth) >= 0.99

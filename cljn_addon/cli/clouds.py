@@ -262,10 +262,10 @@ class CloudCommand:
         seconds = float(getattr(res, "seconds", 0.0) or 0.0)
         sigma = float(getattr(res, "noise_sigma", float("nan")))
         bound = float(getattr(res, "displacement_bound", float("inf")))
+        noise = (f"estimated noise {sigma:.4g} (no point moved more than {bound:.4g}), "
+                 if math.isfinite(sigma) else "")
         line = (f"{label}: {n} points, {outliers} outliers flagged, "
-                f"mean displacement {disp:.4g}, {seconds:.1f} s")
-        if math.isfinite(sigma):
-            line += f"; estimated noise {sigma:.4g}, no point moved more than {bound:.4g}"
+                f"mean displacement {disp:.4g}, {noise}{seconds:.1f} s")
         if output is not None:
             line += f" -> {output}"
         out(line)

@@ -19,7 +19,7 @@ def main(argv=None):
     parser.add_argument("--points", type=int, default=50_000, help="points sampled per shape")
     parser.add_argument("--levels", type=float, nargs="+", default=[x * 100 for x in TEST_NOISE_LEVELS],
                         help="noise sigma in percent of the bbox diagonal")
-    parser.add_argument("--iterations", type=int, default=4)
+    parser.add_argument("--iterations", default="4", help="a whole number, or auto (from the estimated noise)")
     parser.add_argument("--synthetic", nargs="*", default=None, metavar="SHAPE",
                         help="evaluate built-in shapes instead of a folder")
     parser.add_argument("--no-thin", action="store_true",
@@ -29,6 +29,11 @@ def main(argv=None):
     parser.add_argument("--json", default=None, help="also write the full result as JSON")
     parser.add_argument("--threads", type=int, default=None)
     args = parser.parse_args(argv)
+    if args.iterations != "auto":
+        try:
+            args.iterations = int(args.iterations)
+        except ValueError:
+            parser.error(f"--iterations: expected a whole number or auto, got {args.iterations!r}")
     if args.threads:
         import torch
         torch.set_num_threads(args.threads)

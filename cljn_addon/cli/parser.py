@@ -50,6 +50,13 @@ def _positive_int(text):
     return value
 
 
+def _iterations(text):
+    """A whole number of iterations, or 'auto' (chosen from the estimated noise)."""
+    if str(text).strip().lower() == "auto":
+        return "auto"
+    return _positive_int(text)
+
+
 def _percent(text):
     try:
         value = float(text)
@@ -110,10 +117,10 @@ def _add_cloud_options(p: argparse.ArgumentParser, normals_only: bool):
     eng = p.add_argument_group("engine (as in the panel)")
     eng.add_argument("--model", metavar="FILE.safetensors",
                      help="weights file with its .json beside it (default: the shipped model)")
-    eng.add_argument("--iterations", type=_positive_int, default=4,
+    eng.add_argument("--iterations", type=_iterations, default=4,
                      help=("accepted for symmetry with denoise: normals take one network pass"
                            if normals_only else
-                           "filtering iterations (default 4; 10 for very noisy scans)"))
+                           "filtering iterations, or auto to choose 1-4 from the estimated noise (default 4)"))
     eng.add_argument("--patch-radius", type=_percent, metavar="PERCENT",
                      help="patch radius in percent of the bounding-box diagonal (default 5)")
     if not normals_only:

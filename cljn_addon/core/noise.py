@@ -8,6 +8,7 @@ under-clean but never wreck the scan.
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from .patches import PatchSource, make_patches
 
@@ -15,35 +16,56 @@ NOISE_SAMPLE = 4_000           # patches the estimate is taken over (random cent
 NOISE_PATCH_POINTS = 256
 MAD_TO_SIGMA = 1.4826          # median |x| of a Gaussian is 0.6745 sigma
 DISPLACEMENT_BOUND_SIGMAS = 3.0
+SHEET_FIT_ROUNDS = 4
+MIN_FIT_POINTS = 16
+FIT_BALL_POINTS = 100
+SHEET_SIGMAS = 2.5             # points within this many sigma of the fit are the centre's sheet
+TRUNCATED_MAD = 0.9766         # median |x| of a Gaussian cut at 2.5 sigma, over 0.6745 sigma
 
 
 def estimate_noise_sigma(points, radius, sample=NOISE_SAMPLE, seed=0) -> float:
     """Robust sigma of the scanner noise, in the cloud's units.
 
     In balls of the patch radius around random points, a quadric height field is fitted in
-    each ball's PCA frame (so curvature does not count as noise) and sigma is the median
-    absolute residual of all ball points, scaled to a Gaussian's sigma. Measured on the
-    validation meshes and synthetic solids at 0.25-2.5% noise it lands within -15%/+20% of the
-    true sigma (more at 0.25% on detailed shapes, where fine detail reads as noise). Where a
-    part is thinner than the ball both of its sides enter the fit and the estimate reads
-    about the half-thickness: the bound gets looser, never tighter.
+    each ball's PCA frame (so curvature does not count as noise), robustly: starting from the
+    half of the ball nearest the centre's height and refitting on the points within 2.5
+    sigma, so that the far side of a thin part (a plate, a wall, a car in front of a wall)
+    does not count as noise either. Sigma is the median over balls of the scaled median
+    absolute residual.
     """
     pts = np.asarray(points, np.float64)
     if len(pts) < 10 or not radius > 0:
         return 0.0
     rng = np.random.default_rng(seed)
-    source = PatchSource(pts, radius, NOISE_PATCH_POINTS, rng)
     centres = pts[rng.choice(len(pts), size=min(sample, len(pts)), replace=False)]
+    # A sparse cloud gets wider balls: a robust quadric fit needs ~100 points to be unbiased.
+    k = min(FIT_BALL_POINTS, len(pts) - 1)
+    reach, _ = cKDTree(pts).query(centres[:500], k=[k + 1], workers=-1)
+    radius = max(float(radius), float(np.median(reach)))
+    source = PatchSource(pts, radius, NOISE_PATCH_POINTS, rng)
     local, _, counts = make_patches(source, centres, rng)
-    local = local[counts >= 10].astype(np.float64)
+    dense = counts >= MIN_FIT_POINTS
+    local = local[dense].astype(np.float64)
+    distinct = np.minimum(counts[dense], NOISE_PATCH_POINTS)     # the rest is padding
     if len(local) == 0:
         return 0.0
     x, y, z = local[..., 0], local[..., 1], local[..., 2]
     design = np.stack([x * x, x * y, y * y, x, y, np.ones_like(x)], axis=-1)       # (M, n, 6)
-    normal_eq = np.einsum("mni,mnj->mij", design, design) + 1e-9 * np.eye(6)
-    coef = np.linalg.solve(normal_eq, np.einsum("mni,mn->mi", design, z)[..., None])[..., 0]
-    residual = z - np.einsum("mni,mi->mn", design, coef)
-    return float(MAD_TO_SIGMA * np.median(np.abs(residual)) * radius)
+    # Start from the half of the ball nearest the centre's own height, so that where a thin
+    # part puts its other side in the ball the fit locks onto the centre's side.
+    keep = np.abs(z) <= np.median(np.abs(z), axis=1, keepdims=True)
+    for _ in range(SHEET_FIT_ROUNDS):
+        w = keep.astype(np.float64)
+        normal_eq = np.einsum("mn,mni,mnj->mij", w, design, design) + 1e-9 * np.eye(6)
+        coef = np.linalg.solve(normal_eq, np.einsum("mn,mni,mn->mi", w, design, z)[..., None])[..., 0]
+        residual = np.abs(z - np.einsum("mni,mi->mn", design, coef))
+        kept = np.where(keep, residual, np.nan)
+        scale = MAD_TO_SIGMA * np.nanmedian(kept, axis=1, keepdims=True) / TRUNCATED_MAD
+        keep = residual <= SHEET_SIGMAS * scale
+    # Six fitted coefficients take six degrees of freedom from the distinct kept points.
+    used = distinct * keep.mean(axis=1)
+    scale = scale[:, 0] * np.sqrt(used / np.maximum(used - 6.0, 1.0))
+    return float(np.median(scale) * radius)
 
 
 def clamp_displacement(moved, original, bound):

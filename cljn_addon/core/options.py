@@ -30,7 +30,7 @@ class DenoiseOptions:
     max_displacement: cap on how far any point moves (cloud units); None for 3 x the noise
     sigma estimated from the cloud."""
 
-    iterations: int = 4
+    iterations: int | str = 4          # or "auto"
     patch_radius_fraction: float | None = None
     orientation: str = "outward"
     viewpoint: tuple | None = None

@@ -7,11 +7,15 @@ from scipy.spatial import cKDTree
 CHUNK = 65536  # rows per neighbour query: bounds memory for million-point clouds
 
 
-def inflation(filtered: np.ndarray, before: np.ndarray, k: int = 100) -> np.ndarray:
+def inflation(filtered: np.ndarray, before: np.ndarray, k: int = 100, normals=None,
+              max_offset=None) -> np.ndarray:
     """Taubin-like inflation: p_bar_i = p'_i - mean_{j in kNN(p'_i)} (p'_j - p_j).
 
     The k nearest filtered neighbours include the point itself, as a shrink that is uniform
-    over the neighbourhood should be undone exactly.
+    over the neighbourhood should be undone exactly. With normals and max_offset (ours), the
+    mean runs over the neighbours within max_offset of p_i's tangent plane (measured before
+    the step): on a part thinner than the neighbourhood the two sides move towards each
+    other, their shifts cancel in a mean over both, and only a one-sided mean undoes them.
     """
     k = min(k, len(filtered))
     tree = cKDTree(filtered)
@@ -20,15 +24,23 @@ def inflation(filtered: np.ndarray, before: np.ndarray, k: int = 100) -> np.ndar
     for s in range(0, len(filtered), CHUNK):
         _, idx = tree.query(filtered[s:s + CHUNK], k=k, workers=-1)
         idx = idx.reshape(-1, k)
-        out[s:s + CHUNK] = filtered[s:s + CHUNK] - shift[idx].mean(axis=1)
+        if max_offset is None or normals is None:
+            out[s:s + CHUNK] = filtered[s:s + CHUNK] - shift[idx].mean(axis=1)
+            continue
+        offset = np.einsum("mc,mkc->mk", normals[s:s + CHUNK], before[idx] - before[s:s + CHUNK, None, :])
+        near = (np.abs(offset) <= max_offset)[..., None]
+        count = np.maximum(near.sum(axis=1), 1)
+        out[s:s + CHUNK] = filtered[s:s + CHUNK] - (shift[idx] * near).sum(axis=1) / count
     return out
 
 
-def lrma_update(points: np.ndarray, normals: np.ndarray, k: int = 20) -> np.ndarray:
+def lrma_update(points: np.ndarray, normals: np.ndarray, k: int = 20, max_offset=None) -> np.ndarray:
     """p_i += 1/(3|N|) sum_j (n_j n_j^T + n_i n_i^T)(p_j - p_i) over the k nearest (self excluded).
 
     Moves each point along the normals only: towards the neighbours' tangent planes, not
-    along the surface.
+    along the surface. max_offset (ours): neighbours further than this from p_i's tangent
+    plane are left out of N: on a part thinner than the neighbourhood they are the other
+    side, and averaging over both sides pulls the two sides together.
     """
     k = min(k, len(points) - 1)
     if k < 1:
@@ -43,6 +55,12 @@ def lrma_update(points: np.ndarray, normals: np.ndarray, k: int = 20) -> np.ndar
         n_j = normals[idx]
         n_i = normals[s:s + CHUNK]
         along_j = np.einsum("mkc,mkc->mk", n_j, diff)[..., None] * n_j
-        along_i = np.einsum("mc,mkc->mk", n_i, diff)[..., None] * n_i[:, None, :]
-        out[s:s + CHUNK] = p + (along_j + along_i).sum(axis=1) / (3.0 * k)
+        offset_i = np.einsum("mc,mkc->mk", n_i, diff)
+        along_i = offset_i[..., None] * n_i[:, None, :]
+        if max_offset is None:
+            out[s:s + CHUNK] = p + (along_j + along_i).sum(axis=1) / (3.0 * k)
+        else:
+            near = (np.abs(offset_i) <= max_offset)[..., None]
+            count = np.maximum(near.sum(axis=1), 1)
+            out[s:s + CHUNK] = p + ((along_j + along_i) * near).sum(axis=1) / (3.0 * count)
     return out

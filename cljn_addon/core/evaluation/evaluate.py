@@ -120,6 +120,7 @@ def evaluate(shapes, model, levels=TEST_NOISE_LEVELS, n_points=50_000, iteration
                 # Outward truth exists only for closed, consistently wound meshes.
                 "sign_ours": sign_agreement(res.normals, shape["normals"]) if shape["closed"] else float("nan"),
                 "noise_sigma_est": res.noise_sigma,
+                "iterations_run": float(res.iterations),
                 "seconds": seconds,
             }
             for fname, (_, outs) in filters.items():
