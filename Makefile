@@ -2,7 +2,7 @@
 PY := .venv/bin/python
 VENV_STAMP := .venv/.requirements-installed
 
-.PHONY: demo test bench extension clean-venv
+.PHONY: demo test lint bench extension clean-venv
 
 $(VENV_STAMP): requirements.txt
 	test -x $(PY) || python3.11 -m venv .venv || python3 -m venv .venv
@@ -15,6 +15,9 @@ demo: $(VENV_STAMP)
 
 test: $(VENV_STAMP)
 	$(PY) -m pytest -q tests
+
+lint: $(VENV_STAMP)
+	$(PY) -m ruff check .
 
 bench: $(VENV_STAMP)
 	$(PY) standalone/run.py bench

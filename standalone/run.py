@@ -19,7 +19,6 @@ _IN_BLENDER = "bpy" in sys.modules
 
 from cljn_addon.cli import argv_from_sys, main  # noqa: E402
 
-
 if __name__ == "__main__":
     _code = main(argv_from_sys(sys.argv, in_blender=_IN_BLENDER or None))
     sys.stdout.flush()

@@ -7,14 +7,13 @@ from __future__ import annotations
 
 import subprocess
 import sys
+import sys as _sys
 import tomllib
 import zipfile
 from pathlib import Path
+from pathlib import Path as _Path
 
 import pytest
-
-import sys as _sys
-from pathlib import Path as _Path
 
 _sys.path.insert(0, str(_Path(__file__).resolve().parent))   # blender_helpers, any import mode
 

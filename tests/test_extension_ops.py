@@ -25,7 +25,6 @@ def test_denoise_points_with_the_shipped_model(bx):
     import bpy
     import numpy as np
 
-    core = bx.core
     metrics = __import__(bx.package + ".core.evaluation.metrics", fromlist=["metrics"])
     shapes = __import__(bx.package + ".core.evaluation.shapes", fromlist=["shapes"])
     baselines = __import__(bx.package + ".core.evaluation.baselines", fromlist=["baselines"])
@@ -477,7 +476,6 @@ def test_operator_and_command_line_give_identical_results(bx):
     import bpy
     import numpy as np
     import torch
-
     from blender_helpers import REPO
 
     shapes = __import__(bx.package + ".core.evaluation.shapes", fromlist=["shapes"])

@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 
 from cljn_addon.core import InputError
-from cljn_addon.core.formats.meshes import find_meshes, read_mesh
 from cljn_addon.core.evaluation.shapes import signed_volume
+from cljn_addon.core.formats.meshes import find_meshes, read_mesh
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data" / "meshes"
 

@@ -5,8 +5,8 @@ import pytest
 from cljn_addon.core import InputError
 from cljn_addon.core.evaluation.baselines import pca_normals
 from cljn_addon.core.evaluation.metrics import sign_agreement
-from cljn_addon.core.orient import orient_normals
 from cljn_addon.core.evaluation.shapes import sample_shape
+from cljn_addon.core.orient import orient_normals
 
 
 @pytest.mark.parametrize("name", ["sphere", "torus", "box"])

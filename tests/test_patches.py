@@ -3,8 +3,15 @@ import numpy as np
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from cljn_addon.core.patches import (PatchSource, bbox_diagonal, from_frame, gather_patches,
-                                     make_patches, pca_frames, to_frame)
+from cljn_addon.core.patches import (
+    PatchSource,
+    bbox_diagonal,
+    from_frame,
+    gather_patches,
+    make_patches,
+    pca_frames,
+    to_frame,
+)
 
 
 def test_frames_are_proper_rotations_and_round_trip_exactly():

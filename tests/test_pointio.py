@@ -4,8 +4,8 @@ import struct
 import numpy as np
 import pytest
 
-from cljn_addon.core.formats import points as pointio
 from cljn_addon.core.errors import InputError
+from cljn_addon.core.formats import points as pointio
 from cljn_addon.core.formats.points import PointCloud
 
 

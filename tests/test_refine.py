@@ -1,8 +1,8 @@
 """Inflation and the LRMA position update."""
 import numpy as np
 
-from cljn_addon.core.refine import inflation, lrma_update
 from cljn_addon.core.evaluation.shapes import sample_shape
+from cljn_addon.core.refine import inflation, lrma_update
 
 
 def test_lrma_on_noisy_plane_shrinks_off_plane_error_and_keeps_in_plane_spread():

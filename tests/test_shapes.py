@@ -4,9 +4,17 @@ import numpy as np
 import pytest
 
 from cljn_addon.core.evaluation.evaluate import is_closed_and_consistent
-from cljn_addon.core.evaluation.shapes import (SHAPES, THIN_SHAPES, extrude, face_normals_and_areas, sample_mesh,
-                                               shape_mesh, signed_volume, thin_training_shape,
-                                               triangulate_polygon)
+from cljn_addon.core.evaluation.shapes import (
+    SHAPES,
+    THIN_SHAPES,
+    extrude,
+    face_normals_and_areas,
+    sample_mesh,
+    shape_mesh,
+    signed_volume,
+    thin_training_shape,
+    triangulate_polygon,
+)
 
 
 def test_ear_clipping_covers_a_concave_polygon_exactly():

@@ -10,8 +10,8 @@ import pytest
 from cljn_addon.core import denoise, load_model
 from cljn_addon.core.evaluation.baselines import pca_normals, pca_projection_filter
 from cljn_addon.core.evaluation.metrics import chamfer, msae, sign_agreement
-from cljn_addon.core.model import DEFAULT_WEIGHTS, config_path_for
 from cljn_addon.core.evaluation.shapes import sample_shape
+from cljn_addon.core.model import DEFAULT_WEIGHTS, config_path_for
 
 
 @pytest.fixture(scope="module")

@@ -12,9 +12,8 @@ import re
 import sys
 from pathlib import Path
 
-import numpy as np
-
 import bpy
+import numpy as np
 
 from ..core.errors import InputError
 from ..core.formats.points import atomic_paths

@@ -21,9 +21,8 @@ Attributes written on the POINT domain (nothing is ever deleted):
 """
 from __future__ import annotations
 
-import numpy as np
-
 import bpy
+import numpy as np
 
 POSITION = "position"
 CUSTOM_NORMAL = "custom_normal"

@@ -13,9 +13,8 @@ import threading
 import time
 import traceback
 
-import numpy as np
-
 import bpy
+import numpy as np
 from bpy.props import EnumProperty, StringProperty
 
 from . import deps, object_io, pipeline

@@ -13,9 +13,8 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass
 
-import numpy as np
-
 import bpy
+import numpy as np
 
 from ..core.errors import InputError
 from ..core.options import DenoiseOptions

@@ -9,10 +9,9 @@ import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
-
 import bpy
 import mathutils
+import numpy as np
 
 from ..core.formats.points import atomic_paths
 from .blendfile import empty_scene, quiet_stdout

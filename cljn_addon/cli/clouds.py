@@ -9,7 +9,6 @@ Denoise Points operator runs. numpy, torch and bpy are imported when a batch run
 from __future__ import annotations
 
 import math
-
 import os
 import re
 import shutil
@@ -21,9 +20,8 @@ from pathlib import Path
 from ..core.errors import InputError, user_message
 from ..core.options import DenoiseOptions
 from .console import err, out
-from .exitcodes import (EXIT_INTERNAL, EXIT_INTERRUPTED, EXIT_OK, EXIT_PARTIAL, EXIT_USAGE,
-                        UsageError)
 from .dependencies import engine_missing_message
+from .exitcodes import EXIT_INTERNAL, EXIT_INTERRUPTED, EXIT_OK, EXIT_PARTIAL, EXIT_USAGE, UsageError
 from .parser import ALL_SUFFIXES, BLEND_SUFFIX
 from .progress import Progress
 from .report import build_report, write_report

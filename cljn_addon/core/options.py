@@ -13,7 +13,6 @@ from dataclasses import dataclass
 from .config import ORIENTATIONS
 from .errors import InputError
 
-
 _model_cache: dict = {}     # (path, mtime) -> loaded network; one model at a time
 
 

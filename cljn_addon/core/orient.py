@@ -3,7 +3,8 @@
 Outward, for closed shapes, in the manner of Hoppe et al. but robust to noise and to sharp
 CAD edges:
 1. Smooth regions: k-NN edges whose normals agree within ~25 degrees (up to sign, and with
-   the reflection test of step 2 agreeing on that sign) link points into regions; inside a region the sign is carried over a minimum spanning tree of
+   the reflection test of step 2 agreeing on that sign) link points into regions; inside a
+   region the sign is carried over a minimum spanning tree of
    1 - |n_i . n_j| (Hoppe's propagation, reliable where the normal turns gradually).
 2. Across regions (sharp edges), a single edge says little on noisy data, so every k-NN
    edge between two regions votes: n_i reflected across the plane bisecting the edge is the

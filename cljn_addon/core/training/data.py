@@ -13,9 +13,9 @@ from pathlib import Path
 import numpy as np
 
 from ..config import ROTATION_ANGLES_DEG, TRAIN_NOISE_LEVELS
+from ..evaluation.shapes import normalise_unit_diagonal, sample_mesh, shape_mesh, thin_training_shape
 from ..formats.meshes import read_mesh
 from ..patches import PatchSource, bbox_diagonal, pca_frames, to_frame
-from ..evaluation.shapes import normalise_unit_diagonal, sample_mesh, shape_mesh, thin_training_shape
 
 
 @dataclass
