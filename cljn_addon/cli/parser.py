@@ -57,34 +57,27 @@ def _iterations(text):
     return _positive_int(text)
 
 
-def _percent(text):
+def _number(text, ok, requirement):
+    """A float argument that must satisfy ok(value); otherwise 'must be <requirement>'."""
     try:
         value = float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not (0.0 < value <= 100.0) or not math.isfinite(value):
-        raise argparse.ArgumentTypeError(f"must be above 0 and at most 100 (percent), got {text}")
+    if not (math.isfinite(value) and ok(value)):
+        raise argparse.ArgumentTypeError(f"must be {requirement}, got {text}")
     return value
+
+
+def _percent(text):
+    return _number(text, lambda v: 0.0 < v <= 100.0, "above 0 and at most 100 (percent)")
 
 
 def _positive_float(text):
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not value > 0:
-        raise argparse.ArgumentTypeError(f"must be above 0, got {text}")
-    return value
+    return _number(text, lambda v: v > 0, "above 0")
 
 
 def _finite(text):
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not math.isfinite(value):
-        raise argparse.ArgumentTypeError(f"must be finite, got {text}")
-    return value
+    return _number(text, lambda v: True, "finite")
 
 
 def _add_cloud_options(p: argparse.ArgumentParser, normals_only: bool):

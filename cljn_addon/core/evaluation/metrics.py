@@ -91,6 +91,7 @@ class MeshDistance:
         self.sample_face = np.concatenate([face_id, np.arange(len(self.f))])
         self.tree = cKDTree(np.vstack([pts, cent]))
         self.k = candidates
+        self.face_normals = face_normals_and_areas(self.v, self.f)[0]
 
     def distance(self, points, chunk=20000):
         return self.nearest(points, chunk)[0]
@@ -111,12 +112,6 @@ class MeshDistance:
             dist[s:s + chunk] = d[np.arange(len(p)), best]
             face[s:s + chunk] = cand[np.arange(len(p)), best]
         return dist, self.face_normals[face]
-
-    @property
-    def face_normals(self):
-        if not hasattr(self, "_face_normals"):
-            self._face_normals = face_normals_and_areas(self.v, self.f)[0]
-        return self._face_normals
 
 
 def point2surface(points, vertices, faces):

@@ -232,6 +232,20 @@ def extrude(polygon_xy, height, z0=None):
     return _outward(v, faces)
 
 
+def _wall_faces(m):
+    """Outer wall, inner wall (reversed) and top rim of two stacked loops of m vertices whose
+    vertex blocks are: outer bottom, outer top, inner bottom, inner top."""
+    i = np.arange(m)
+    j = (i + 1) % m
+    ob, ot, ib, it = i, i + m, i + 2 * m, i + 3 * m
+    jb, jt, kb, kt = j, j + m, j + 2 * m, j + 3 * m
+    return np.concatenate([
+        np.stack([ob, jb, jt], 1), np.stack([ob, jt, ot], 1),       # outer wall
+        np.stack([ib, kt, kb], 1), np.stack([ib, it, kt], 1),       # inner wall (reversed)
+        np.stack([ot, jt, kt], 1), np.stack([ot, kt, it], 1),       # top rim
+    ])
+
+
 def extrude_ring(outer_xy, inner_xy, height, z0=None):
     """Closed thin-walled tube: outer and inner loops (same vertex count, same winding)."""
     outer, inner = np.asarray(outer_xy, np.float64), np.asarray(inner_xy, np.float64)
@@ -242,15 +256,8 @@ def extrude_ring(outer_xy, inner_xy, height, z0=None):
                    np.c_[inner, np.full(m, z0)], np.c_[inner, np.full(m, z1)]])
     i = np.arange(m)
     j = (i + 1) % m
-    ob, ot, ib, it = i, i + m, i + 2 * m, i + 3 * m
-    jb, jt, kb, kt = j, j + m, j + 2 * m, j + 3 * m
-    faces = np.concatenate([
-        np.stack([ob, jb, jt], 1), np.stack([ob, jt, ot], 1),       # outer wall
-        np.stack([ib, kt, kb], 1), np.stack([ib, it, kt], 1),       # inner wall (reversed)
-        np.stack([ot, jt, kt], 1), np.stack([ot, kt, it], 1),       # top rim
-        np.stack([ob, kb, jb], 1), np.stack([ob, ib, kb], 1),       # bottom rim
-    ])
-    return _outward(v, faces)
+    bottom_rim = np.concatenate([np.stack([i, j + 2 * m, j], 1), np.stack([i, i + 2 * m, j + 2 * m], 1)])
+    return _outward(v, np.concatenate([_wall_faces(m), bottom_rim]))
 
 
 def open_cup(outer_xy, inner_xy, height, floor):
@@ -260,22 +267,14 @@ def open_cup(outer_xy, inner_xy, height, floor):
     z0, z1, zf = -height / 2, height / 2, -height / 2 + floor
     v = np.vstack([np.c_[outer, np.full(m, z0)], np.c_[outer, np.full(m, z1)],
                    np.c_[inner, np.full(m, zf)], np.c_[inner, np.full(m, z1)]])
-    i = np.arange(m)
-    j = (i + 1) % m
-    ob, ot, ib, it = i, i + m, i + 2 * m, i + 3 * m
-    jb, jt, kb, kt = j, j + m, j + 2 * m, j + 3 * m
     cap_o = triangulate_polygon(outer)
     cap_i = triangulate_polygon(inner)
     ccw = np.sum(outer[:, 0] * np.roll(outer[:, 1], -1) - np.roll(outer[:, 0], -1) * outer[:, 1]) > 0
     if not ccw:
         cap_o, cap_i = cap_o[:, ::-1], cap_i[:, ::-1]
-    faces = np.concatenate([
-        np.stack([ob, jb, jt], 1), np.stack([ob, jt, ot], 1),       # outer wall
-        np.stack([ib, kt, kb], 1), np.stack([ib, it, kt], 1),       # inner wall (reversed)
-        np.stack([ot, jt, kt], 1), np.stack([ot, kt, it], 1),       # top rim
-        cap_o[:, ::-1],                                             # bottom, facing down
-        cap_i + 2 * m,                                              # inner floor, facing up
-    ])
+    faces = np.concatenate([_wall_faces(m),
+                            cap_o[:, ::-1],            # bottom, facing down
+                            cap_i + 2 * m])            # inner floor, facing up
     return _outward(v, faces)
 
 
