@@ -58,3 +58,17 @@ def test_bad_displacement_bound_is_refused():
     noisy, _, _ = sample_shape("box", 500, noise=0.01, seed=6)
     with pytest.raises(InputError, match="max displacement"):
         denoise(noisy, build_model("tiny").eval(), max_displacement=-1.0)
+
+
+@pytest.mark.parametrize("sigma", [0.005, 0.008, 0.015])
+def test_noise_estimate_sees_through_a_coarse_storage_grid(sigma):
+    """A LAS-like cloud at 1 cm: ties made the median residual 0 (sigma^ ~ 1e-10 on a real LAZ)."""
+    from cljn_addon.core.noise import coordinate_quantum
+
+    rng = np.random.default_rng(1)
+    plane = np.c_[rng.uniform(-1, 1, (30000, 2)), rng.normal(0, sigma, 30000)]
+    stored = np.round(plane / 0.01) * 0.01 + [500.0, 200.0, 0.0]
+    assert coordinate_quantum(plane) is None
+    assert np.allclose(coordinate_quantum(stored), 0.01)
+    est = estimate_noise_sigma(stored, 0.05 * bbox_diagonal(stored))
+    assert 0.7 * sigma < est < 1.25 * sigma, (sigma, est)

@@ -229,7 +229,7 @@ def test_read_points_dispatch_errors(tmp_path):
     with pytest.raises(InputError, match="unsupported point-cloud format '.obj'"):
         pointio.read_points(tmp_path / "x.obj")
     with pytest.raises(InputError, match="unsupported output format"):
-        pointio.write_points(tmp_path / "x.las", _cloud())
+        pointio.write_points(tmp_path / "x.e57", _cloud())
 
 
 def test_atomic_write_leaves_target_alone_on_error(tmp_path):

@@ -297,7 +297,7 @@ def test_missing_and_mismatched_model_exit_2(tmp_path, model_path, torus):
     (["denoise", "a.ply", "b.ply", "-o", "c.ply"], "-o takes a single input"),
     (["denoise", "a.ply", "-o", "a.ply"], "refusing to overwrite"),
     (["denoise", "a.ply", "--out-dir", "."], "refusing to overwrite"),
-    (["denoise", "a.ply", "-o", "c.las"], "unsupported output format"),
+    (["denoise", "a.ply", "-o", "c.e57"], "unsupported output format"),
     (["denoise", "a.obj", "-o", "c.ply"], "unsupported input format"),
     (["denoise", "a.ply", "-o", "c.ply", "--format", "npy"], "--format goes with --out-dir"),
     (["denoise", "s.blend", "-o", "c.ply"], "a .blend input is saved as a .blend"),

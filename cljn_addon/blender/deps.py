@@ -23,6 +23,12 @@ REQUIRED = {
     "scipy": "scipy",
     "safetensors": "safetensors",
 }
+# LAS/LAZ import/export and .las/.laz on the command line; installed with the engine's packages,
+# not needed to denoise.
+LIDAR = {
+    "laspy": "laspy>=2.5,<3",
+    "lazrs": "lazrs>=0.6,<1",
+}
 ENGINE_MODULES = ("numpy", *REQUIRED)   # what the engine imports (numpy included)
 TORCH_CPU_INDEX = "https://download.pytorch.org/whl/cpu"
 PYPI_INDEX = "https://pypi.org/simple"
@@ -216,7 +222,7 @@ def install(packages=None, *, torch_cpu_only=True, extra_args="", progress=None,
     progress(fraction, message); cancel: an Event-like (is_set()); raises DependencyError with
     the last pip error line on failure.
     """
-    packages = list(packages or REQUIRED.values())
+    packages = list(packages or [*REQUIRED.values(), *LIDAR.values()])
     ensure_pip(log)
     target = site_packages_dir(create=True)
     cmd, constraints = pip_command(packages, target, torch_cpu_only=torch_cpu_only,

@@ -389,7 +389,7 @@ class CLJN_OT_train_model(_JobOperator, bpy.types.Operator):
 
 
 class CLJN_OT_install_dependencies(_JobOperator, bpy.types.Operator):
-    """Install torch, scipy and safetensors into this extension's user directory with Blender's pip"""
+    """Install torch, scipy, safetensors (and laspy, lazrs for LAS/LAZ) into this extension's user directory with Blender's pip"""
     bl_idname = "cljn.install_dependencies"
     bl_label = "Install Dependencies"
     bl_options = {"REGISTER"}
@@ -415,7 +415,7 @@ class CLJN_OT_install_dependencies(_JobOperator, bpy.types.Operator):
             self.report({"ERROR"}, "Online access is off: turn on Edit > Preferences > System > Network > "
                         "Allow Online Access, then press Install Dependencies again")
             return None
-        packages = self.packages.split() or list(deps.REQUIRED.values())
+        packages = self.packages.split() or [*deps.REQUIRED.values(), *deps.LIDAR.values()]
         self._packages = packages
 
         def work(progress, cancel):

@@ -1,4 +1,4 @@
-"""`run.py denoise` and `run.py normals`: a batch of point files (.ply .xyz .npy) and .blend
+"""`run.py denoise` and `run.py normals`: a batch of point files (.ply .xyz .npy .las .laz) and .blend
 files, each written to its output (or in place with a backup), one summary line per input,
 an optional JSON report and before/after previews.
 
@@ -292,8 +292,12 @@ class CloudCommand:
         import numpy as np
 
         from ..core.formats import points as pointio
+        from ..core.formats.las import LAS_SUFFIXES
 
-        cloud = pointio.read_points(job.input)
+        if job.output.suffix.lower() == BLEND_SUFFIX:
+            return self._run_points_to_blend(job)
+        # LAS/LAZ -> LAS/LAZ streams the records again on writing: only positions in memory.
+        cloud = pointio.read_points(job.input, with_fields=job.output.suffix.lower() not in LAS_SUFFIXES)
         res = self._engine(cloud.points, job.input.name)
         dtype = cloud.points.dtype if cloud.points.dtype.kind == "f" else np.float64
         out_points = cloud.points if self.normals_only else np.asarray(res.points).astype(dtype)
@@ -302,30 +306,43 @@ class CloudCommand:
         result = pointio.PointCloud(out_points, np.asarray(res.normals, np.float32),
                                     dict(cloud.extra), None,
                                     [c for c in cloud.comments if not c.startswith("CLJN Denoise")]
-                                    + [comment])
+                                    + [comment], source=cloud.source, origin=cloud.origin)
         if self.args.in_place:
             self._backup(job.output)
         job.output.parent.mkdir(parents=True, exist_ok=True)
-        if job.output.suffix.lower() == BLEND_SUFFIX:
-            written = [self._save_cloud_as_blend(job, cloud, res)]
-        else:
-            written = pointio.write_points(job.output, result, outliers=res.outliers)
+        written = pointio.write_points(job.output, result, outliers=res.outliers)
         job.report["output"] = str(job.output)
         if len(written) > 1:
             job.report["files"] = [str(p) for p in written]
         job.report.update(self._stats(str(job.input), res, job.output))
         self._keep_preview(job, job.input.stem, np.asarray(cloud.points, np.float64), res)
 
-    def _save_cloud_as_blend(self, job, cloud, res) -> Path:
-        """A new .blend holding the cloud as a mesh of vertices only (the extension's point
-        cloud), its other properties as point attributes, the result written by object_io."""
-        blendfile, object_io, _pipeline = _blender()
+    def _run_points_to_blend(self, job):
+        """A new .blend holding the cloud as the extension's point cloud (LAS/LAZ: as File >
+        Import makes it, recentred and exportable), the result written by the pipeline."""
+        from ..core.formats import points as pointio
+        from ..core.formats.las import LAS_SUFFIXES
+
+        blendfile, _object_io, pipeline = _blender()
         blendfile.empty_scene()
-        obj = blendfile.new_point_cloud_object(job.input.stem, cloud.points, cloud.extra)
-        for warning in object_io.write_result(obj, res, normals_only=self.normals_only):
+        if job.input.suffix.lower() in LAS_SUFFIXES:
+            from ..blender import las_io
+
+            obj = las_io.import_las(job.input, as_point_cloud=False)
+        else:
+            cloud = pointio.read_points(job.input)
+            obj = blendfile.new_point_cloud_object(job.input.stem, cloud.points, cloud.extra)
+        snap = pipeline.snapshot(obj)
+        res = self._engine(snap.points, job.input.name)
+        for warning in pipeline.write_back(snap, res, self.normals_only):
             err(f"warning: {job.input}: {warning}")
+        if self.args.in_place:
+            self._backup(job.output)
+        job.output.parent.mkdir(parents=True, exist_ok=True)
         blendfile.save_blend(job.output)
-        return job.output
+        job.report["output"] = str(job.output)
+        job.report.update(self._stats(str(job.input), res, job.output))
+        self._keep_preview(job, job.input.stem, snap.points, res)
 
     # ------------------------------------------------------------------ .blend files
     def _run_blend(self, job):

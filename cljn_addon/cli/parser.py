@@ -25,9 +25,15 @@ formats (by extension):
           other properties are not written
   .npy    in: (N,3), (N,6) x y z nx ny nz, or a structured array with x y z fields
           out: (N,6) x y z nx ny nz in the input's float type
+  .las .laz  in/out (laspy + lazrs): the input's point format, header (scale, offset, CRS and
+          other VLRs/EVLRs) and every field in order; positions at the file's scale (unmoved
+          points keep their exact integers); normals as extra bytes NormalX NormalY NormalZ
+          (float32) and cljn_outlier (uint8, 1 = flagged). Streamed in chunks. From another
+          format: LAS 1.4 point format 6 (7 with red/green/blue).
   .blend  in: every point-cloud object (or --objects NAME...) is processed; other objects
           are left alone; saved as a new .blend (or --in-place, keeping NAME.blend1)
           out from a point file: a new scene holding the cloud as a mesh of vertices
+          (from .las/.laz: as File > Import > LAS/LAZ makes it, recentred, exportable)
 
 exit codes:
   0    success
@@ -82,7 +88,7 @@ def _finite(text):
 
 def _add_cloud_options(p: argparse.ArgumentParser, normals_only: bool):
     p.add_argument("inputs", nargs="+", metavar="INPUT",
-                   help="point clouds (.ply .xyz .npy) or Blender scenes (.blend)")
+                   help="point clouds (.ply .xyz .npy .las .laz) or Blender scenes (.blend)")
     out = p.add_argument_group("output (one of -o, --out-dir, --in-place)")
     dest = out.add_mutually_exclusive_group(required=True)
     dest.add_argument("-o", "--output", metavar="OUTPUT",

@@ -143,7 +143,11 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
     vector; sliding along the surface removes no noise and clumps points).
     """
     t0 = time.time()
-    original = validate_points(points)
+    given = validate_points(points)
+    # Work relative to the bounding-box centre (float64): a georeferenced scan far from the
+    # origin denoises like the same scan at the origin, and float32 patches keep their precision.
+    centre = (given.min(axis=0) + given.max(axis=0)) / 2.0
+    original = given - centre
     if orientation not in ORIENTATIONS:
         raise InputError(f"unknown orientation {orientation!r}; choose one of {', '.join(ORIENTATIONS)}")
     if orientation == "viewpoint" and viewpoint is None:
@@ -220,9 +224,9 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
             raise Cancelled("cancelled")
         current = clamp_displacement(filtered, original[inliers], bound)
 
-    out_points = original.copy()
+    out_points = given.copy()          # unmoved points (outliers, normals only) bit-identical
     if move_points:
-        out_points[inliers] = current
+        out_points[inliers] = current + centre
     all_normals = np.empty_like(original)
     all_normals[inliers] = normals
     if outliers.any():
@@ -230,9 +234,11 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
         _, near = cKDTree(out_points[inliers]).query(out_points[outliers], workers=-1)
         all_normals[outliers] = normals[near]
     report(0.97, "orienting normals")
-    all_normals = orient_normals(out_points, all_normals, orientation, viewpoint)
+    if viewpoint is not None and np.shape(viewpoint) == (3,):
+        viewpoint = np.asarray(viewpoint, np.float64) - centre
+    all_normals = orient_normals(out_points - centre, all_normals, orientation, viewpoint)
     all_normals /= np.linalg.norm(all_normals, axis=1, keepdims=True)
-    displacement = np.linalg.norm(out_points - original, axis=1)
+    displacement = np.linalg.norm(out_points - given, axis=1)
     report(1.0, "done")
     return DenoiseResult(points=out_points, normals=all_normals.astype(np.float32), outliers=outliers,
                          displacement=displacement, seconds=time.time() - t0, iterations=iterations,

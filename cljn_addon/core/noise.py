@@ -21,6 +21,32 @@ MIN_FIT_POINTS = 16
 FIT_BALL_POINTS = 100
 SHEET_SIGMAS = 2.5             # points within this many sigma of the fit are the centre's sheet
 TRUNCATED_MAD = 0.9766         # median |x| of a Gaussian cut at 2.5 sigma, over 0.6745 sigma
+QUANTUM_SAMPLE = 20_000        # coordinates per axis looked at to find a storage grid
+
+
+def coordinate_quantum(points, sample=QUANTUM_SAMPLE, seed=0):
+    """(3,) grid step of coordinates stored on a grid (LAS/LAZ integers x scale), or None.
+
+    Only a grid coarse enough to tie many coordinates counts (fewer distinct values than half
+    the sample on some axis): that is when the median residual of a fit is 0 and the noise
+    estimate needs dithering.
+    """
+    pts = np.asarray(points, np.float64)
+    rng = np.random.default_rng(seed)
+    vals = pts[rng.choice(len(pts), size=min(sample, len(pts)), replace=False)]
+    steps, tied = [], False
+    for axis in range(3):
+        v = np.unique(vals[:, axis])
+        if len(v) < 2:
+            return None
+        gaps = np.diff(v)
+        step = float(gaps[gaps > 1e-9 * (v[-1] - v[0])].min())
+        on_grid = np.abs((v - v[0]) / step - np.round((v - v[0]) / step)) < 1e-3
+        if on_grid.mean() < 0.99:
+            return None
+        steps.append(step)
+        tied |= len(v) < 0.5 * len(vals)
+    return np.array(steps) if tied else None
 
 
 def estimate_noise_sigma(points, radius, sample=NOISE_SAMPLE, seed=0) -> float:
@@ -32,11 +58,24 @@ def estimate_noise_sigma(points, radius, sample=NOISE_SAMPLE, seed=0) -> float:
     sigma, so that the far side of a thin part (a plate, a wall, a car in front of a wall)
     does not count as noise either. Sigma is the median over balls of the scaled median
     absolute residual.
+
+    Coordinates stored on a coarse grid (a LAS file at 1 cm) tie so often that the median
+    residual is 0: they are dithered by a uniform step of the grid first and the dither's
+    variance (step^2 / 12) taken off again.
     """
     pts = np.asarray(points, np.float64)
     if len(pts) < 10 or not radius > 0:
         return 0.0
     rng = np.random.default_rng(seed)
+    quantum = coordinate_quantum(pts, seed=seed)
+    if quantum is not None:
+        pts = pts + rng.uniform(-0.5, 0.5, pts.shape) * quantum
+        dithered = _estimate(pts, radius, sample, rng)
+        return float(np.sqrt(max(dithered ** 2 - np.mean(quantum ** 2) / 12.0, 0.0)))
+    return _estimate(pts, radius, sample, rng)
+
+
+def _estimate(pts, radius, sample, rng) -> float:
     centres = pts[rng.choice(len(pts), size=min(sample, len(pts)), replace=False)]
     # A sparse cloud gets wider balls: a robust quadric fit needs ~100 points to be unbiased.
     k = min(FIT_BALL_POINTS, len(pts) - 1)

@@ -1,4 +1,5 @@
-"""Point-cloud files: PLY (ascii, binary little/big endian), PCPNet .xyz (+ .normals), .npy.
+"""Point-cloud files: PLY (ascii, binary little/big endian), PCPNet .xyz (+ .normals), .npy;
+LAS/LAZ live in las.py and are dispatched from here.
 
 Pure numpy; never imports bpy. Every reader returns a `PointCloud`; every writer replaces its
 target atomically (a temporary file in the same folder, then `os.replace`), so an interrupted
@@ -58,9 +59,17 @@ class PointCloud:
     extra: dict = field(default_factory=dict)            # name -> (N,) array, in file order
     faces: object = None                                 # PLY face element: (F, k) int64 or list
     comments: list = field(default_factory=list)         # PLY comments, kept on writing
+    source: object = None                                # las.LasSource of a LAS/LAZ input
+    origin: np.ndarray | None = None                     # points are relative to this (float64)
 
     def __len__(self):
         return len(self.points)
+
+    def true_points(self) -> np.ndarray:
+        """Positions in the file's own coordinates (points + origin)."""
+        if self.origin is None:
+            return self.points
+        return np.asarray(self.points, np.float64) + np.asarray(self.origin, np.float64)
 
 
 # --------------------------------------------------------------------------- helpers
@@ -360,8 +369,9 @@ def write_ply(path, cloud: PointCloud, outliers=None, fmt="binary_little_endian"
     """Write the vertex element (faces are not written). Returns [path]."""
     path = Path(path)
     n = len(cloud.points)
-    pkind = "f8" if np.asarray(cloud.points).dtype == np.float64 else "f4"
-    columns = [(a, pkind, cloud.points[:, i]) for i, a in enumerate("xyz")]
+    points = cloud.true_points()
+    pkind = "f8" if np.asarray(points).dtype == np.float64 else "f4"
+    columns = [(a, pkind, points[:, i]) for i, a in enumerate("xyz")]
     if cloud.normals is not None:
         nkind = "f8" if np.asarray(cloud.normals).dtype == np.float64 else "f4"
         columns += [(a, nkind, cloud.normals[:, i]) for i, a in enumerate(("nx", "ny", "nz"))]
@@ -449,9 +459,10 @@ def write_xyz(path, cloud: PointCloud, outliers=None) -> list:
     targets = [path]
     if cloud.normals is not None:
         targets.append(path.with_suffix(".normals"))
-    pfmt = "%.17g" if np.asarray(cloud.points).dtype == np.float64 else "%.9g"
+    points = cloud.true_points()
+    pfmt = "%.17g" if np.asarray(points).dtype == np.float64 else "%.9g"
     with atomic_paths(*targets) as temps:
-        np.savetxt(temps[0], cloud.points, fmt=pfmt)
+        np.savetxt(temps[0], points, fmt=pfmt)
         if cloud.normals is not None:
             nfmt = "%.17g" if np.asarray(cloud.normals).dtype == np.float64 else "%.9g"
             np.savetxt(temps[1], cloud.normals, fmt=nfmt)
@@ -500,8 +511,9 @@ def read_npy(path) -> PointCloud:
 def write_npy(path, cloud: PointCloud, outliers=None) -> list:
     """(N, 6) x y z nx ny nz in the positions' float type ((N, 3) when there are no normals)."""
     path = Path(path)
-    dtype = np.float64 if np.asarray(cloud.points).dtype == np.float64 else np.float32
-    cols = [np.asarray(cloud.points, dtype)]
+    points = cloud.true_points()
+    dtype = np.float64 if np.asarray(points).dtype == np.float64 else np.float32
+    cols = [np.asarray(points, dtype)]
     if cloud.normals is not None:
         cols.append(np.asarray(cloud.normals, dtype))
     table = np.concatenate(cols, axis=1)
@@ -513,12 +525,25 @@ def write_npy(path, cloud: PointCloud, outliers=None) -> list:
 
 # --------------------------------------------------------------------------- dispatch
 
-_READERS = {".ply": read_ply, ".xyz": read_xyz, ".npy": read_npy}
-_WRITERS = {".ply": write_ply, ".xyz": write_xyz, ".npy": write_npy}
+def _read_las(path, with_fields=True):
+    from .las import read_las
+
+    return read_las(path, with_fields=with_fields)
 
 
-def read_points(path) -> PointCloud:
-    """Read a .ply, .xyz or .npy point cloud (format by extension)."""
+def _write_las(path, cloud, outliers=None):
+    from .las import write_las
+
+    return write_las(path, cloud, outliers=outliers)
+
+
+_READERS = {".ply": read_ply, ".xyz": read_xyz, ".npy": read_npy, ".las": _read_las, ".laz": _read_las}
+_WRITERS = {".ply": write_ply, ".xyz": write_xyz, ".npy": write_npy, ".las": _write_las, ".laz": _write_las}
+
+
+def read_points(path, *, with_fields=True) -> PointCloud:
+    """Read a .ply, .xyz, .npy, .las or .laz point cloud (format by extension). with_fields=False
+    lets a LAS/LAZ reader keep only positions in memory (for writing back to LAS/LAZ)."""
     path = Path(path)
     reader = _READERS.get(path.suffix.lower())
     if reader is None:
@@ -528,6 +553,8 @@ def read_points(path) -> PointCloud:
         raise InputError(f"{path}: file not found")
     if path.is_dir():
         raise InputError(f"{path}: is a folder, not a file")
+    if reader is _read_las:
+        return reader(path, with_fields=with_fields)
     return reader(path)
 
 
