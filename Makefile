@@ -2,7 +2,7 @@
 PY := .venv/bin/python
 VENV_STAMP := .venv/.requirements-installed
 
-.PHONY: demo test lint bench extension clean-venv
+.PHONY: demo test lint bench extension test-blender clean-venv
 
 $(VENV_STAMP): requirements.txt
 	test -x $(PY) || python3.11 -m venv .venv || python3 -m venv .venv
@@ -22,20 +22,22 @@ lint: $(VENV_STAMP)
 bench: $(VENV_STAMP)
 	$(PY) standalone/run.py bench
 
-# The Blender extension zip (Edit > Preferences > Get Extensions > Install from Disk).
-# Stages cljn_addon/ + blender_manifest.toml (no caches, no tests), validates and builds it with
-# Blender's own blender_ext.py from the bpy wheel. `make extension DIST=dir` writes elsewhere.
+# The Blender extension: one zip per platform (linux-x64, windows-x64, macos-arm64, macos-x64)
+# with scipy, safetensors, laspy and lazrs bundled as wheels for Python 3.11 and 3.13
+# (tools/build_extension.py: pip download, cached in .cache/wheels; validated and built with
+# Blender's own blender_ext.py). `make extension DIST=dir PLATFORMS="linux-x64"` for fewer.
 extension: $(VENV_STAMP)
-	@set -e; \
-	dist="$(or $(DIST),dist)"; \
-	ext="$$(ls .venv/lib/python3*/site-packages/bpy/*/scripts/addons_core/bl_pkg/cli/blender_ext.py | head -n 1)"; \
-	test -n "$$ext" || { echo "blender_ext.py not found in the bpy wheel under .venv" >&2; exit 1; }; \
-	tmp="$$(mktemp -d)"; trap 'rm -rf "$$tmp"' EXIT; \
-	stage="$$tmp/cljn_denoise"; mkdir -p "$$stage" "$$dist"; \
-	cp -R cljn_addon/. "$$stage/"; cp blender_manifest.toml "$$stage/"; \
-	find "$$stage" -name __pycache__ -prune -exec rm -rf {} +; rm -rf "$$stage/tests"; \
-	$(PY) "$$ext" validate "$$stage"; \
-	$(PY) "$$ext" build --source-dir "$$stage" --output-dir "$$dist"
+	$(PY) tools/build_extension.py --dist "$(or $(DIST),dist)" $(if $(PLATFORMS),--platforms $(PLATFORMS))
+
+# The extension tests against the bpy wheel of another Blender (4.2 LTS, 4.5 LTS): a venv in
+# .cache/venv-bpy-<version> with that bpy, torch (test fixtures) and pytest; the extension
+# itself gets scipy & co from its bundled wheels. `make test-blender BPY=4.2.23`.
+BPY ?= 4.2.23
+BPY_VENV := .cache/venv-bpy-$(BPY)
+test-blender: $(VENV_STAMP)
+	test -x $(BPY_VENV)/bin/python || python3.11 -m venv $(BPY_VENV)
+	$(BPY_VENV)/bin/python -m pip install --quiet "bpy==$(BPY)" torch==2.13.0 "pytest>=8,<9"
+	$(BPY_VENV)/bin/python -m pytest -q tests/test_extension.py tests/test_extension_ops.py tests/test_extension_las.py tests/test_extension_bare.py
 
 clean-venv:
 	rm -rf .venv

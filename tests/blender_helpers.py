@@ -42,16 +42,21 @@ _INNER = "CLJN_IN_BLENDER"
 
 
 def build_extension_zip(dist: Path) -> Path:
-    """`make extension DIST=dist` (never remaking the venv); returns the zip path."""
+    """`make extension DIST=dist PLATFORMS=linux-x64` (never remaking the venv): the zip a
+    Linux user installs, with its bundled wheels; returns the zip path. Built with the repo's
+    .venv when there is one (its bpy 5.0's blender_ext.py), so that the zip under test is the
+    same whichever Blender version runs the tests."""
     dist.mkdir(parents=True, exist_ok=True)
+    builder = REPO / ".venv" / "bin" / "python"
     proc = subprocess.run(["make", "-s", "-o", ".venv/.requirements-installed", "extension",
-                           f"DIST={dist}", f"PY={PY}"],
+                           f"DIST={dist}", "PLATFORMS=linux-x64",
+                           f"PY={builder if builder.exists() else PY}"],
                           cwd=REPO, capture_output=True, text=True)
     if proc.returncode != 0:
         raise RuntimeError(f"make extension failed:\n{proc.stdout}\n{proc.stderr}")
-    zips = sorted(dist.glob(f"{EXT_ID}-*.zip"))
+    zips = sorted(dist.glob(f"{EXT_ID}-*-linux_x64.zip"))
     if len(zips) != 1:
-        raise RuntimeError(f"expected one {EXT_ID}-*.zip in {dist}, found {zips}")
+        raise RuntimeError(f"expected one {EXT_ID}-*-linux_x64.zip in {dist}, found {zips}")
     return zips[0]
 
 

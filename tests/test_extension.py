@@ -34,10 +34,21 @@ def test_zip_is_valid_and_holds_the_package(blender_env):
     manifest = tomllib.loads(MANIFEST.read_text())
     assert manifest["id"] == "cljn_denoise"
     zip_path = blender_env["zip"]
-    assert zip_path.name == f"cljn_denoise-{manifest['version']}.zip"
+    assert zip_path.name == f"cljn_denoise-{manifest['version']}-linux_x64.zip"
     proc = subprocess.run([PY, str(_blender_ext()), "validate", str(zip_path)], capture_output=True, text=True)
     assert proc.returncode == 0, proc.stdout + proc.stderr
     names = zipfile.ZipFile(zip_path).namelist()
+    # The engine's wheels for this platform, for Blender 4.2-5.0 (cp311) and 5.1+ (cp313),
+    # listed in the zip's manifest; no numpy, no torch, no other platform.
+    wheels = sorted(n for n in names if n.startswith("wheels/"))
+    for package in ("scipy", "safetensors", "laspy", "lazrs"):
+        assert any(w.startswith(f"wheels/{package}-") for w in wheels), (package, wheels)
+    for tag in ("cp311", "cp313"):
+        assert any(tag in w and w.startswith("wheels/scipy-") for w in wheels), (tag, wheels)
+    assert not [w for w in wheels if "numpy" in w or "torch" in w or "win_" in w or "macosx" in w], wheels
+    zipped = tomllib.loads(zipfile.ZipFile(zip_path).read("blender_manifest.toml").decode())
+    assert sorted(zipped["wheels"]) == sorted(f"./{w}" for w in wheels)
+    assert zipped["platforms"] == ["linux-x64"]
     for required in ("blender_manifest.toml", "__init__.py", "blender/object_io.py", "blender/operators.py",
                      "core/__init__.py", "core/infer.py"):
         assert required in names, f"{required} missing from the zip"
@@ -141,7 +152,8 @@ def test_panel_menu_and_preferences_draw(bx):
         bx.settings.model_source = source
         log = draw(panel_cls.draw)
         props = {name for kind, name in log if kind == "prop"}
-        assert {"model_source", "iterations", "patch_radius", "orientation", "device", "use_mesh_vertices"} <= props
+        assert {"model_source", "iterations", "patch_radius", "orientation", "device", "backend",
+                "use_mesh_vertices"} <= props
         assert ("model_path" in props) == (source == "FILE")
         ops = [name for kind, name in log if kind == "operator"]
         for idname in ("cljn.denoise_points", "cljn.estimate_normals", "cljn.restore_original", "cljn.train_model"):
@@ -154,12 +166,18 @@ def test_panel_menu_and_preferences_draw(bx):
     assert menu_ops[:3] == ["cljn.denoise_points", "cljn.estimate_normals", "cljn.restore_original"], menu_ops
 
     prefs_log = draw(type(bx.prefs).draw, bx.prefs)
-    assert {"default_model_path", "device", "torch_cpu_only", "pip_extra_args"} <= {n for k, n in prefs_log if k == "prop"}
-    assert any(k == "label" and n.startswith("torch: found") for k, n in prefs_log), prefs_log
+    assert {"default_model_path", "device", "backend", "torch_cpu_only", "pip_extra_args"} <= {
+        n for k, n in prefs_log if k == "prop"}
+    for name in ("scipy", "safetensors", "laspy", "lazrs"):
+        assert ("label", f"{name}: found") in prefs_log, prefs_log
+    assert any(k == "label" and n.startswith("torch (optional") and n.endswith("found") for k, n in prefs_log)
+    assert [n for k, n in prefs_log if k == "operator"].count("cljn.install_dependencies") == 2   # + Install torch
 
 
 @in_blender(enable=False)
-def test_without_torch_registers_and_says_what_to_press(bx):
+def test_without_torch_denoise_runs_on_numpy_and_training_says_what_to_press(bx):
+    """A Blender without torch: the extension registers, Denoise Points runs on the numpy
+    backend, and Train Model says that it needs torch and which button installs it."""
     import sys
 
     import bpy
@@ -172,18 +190,34 @@ def test_without_torch_registers_and_says_what_to_press(bx):
     bx.enable()
     deps = __import__(PACKAGE + ".blender.deps", fromlist=["deps"])
     deps.refresh()
-    assert deps.missing() == ["torch"], deps.missing()
-    message = deps.missing_message()
-    assert "torch" in message and "Install Dependencies" in message, message
+    assert deps.missing() == [], deps.missing()
+    assert deps.torch_missing()
 
     bx.clear_scene()
-    points = np.random.default_rng(1).normal(size=(200, 3)).astype(np.float32)
-    obj = bx.make_cloud(points)
+    shapes = __import__(PACKAGE + ".core.evaluation.shapes", fromlist=["shapes"])
+    noisy, clean, _ = shapes.sample_shape("sphere", 1500, noise=0.01, seed=2)
+    obj = bx.make_cloud(noisy)
     bx.select(obj)
-    names = bx.attribute_names(obj)
-    with pytest.raises(RuntimeError, match="torch is not installed in Blender's Python"):
+    bx.settings.model_source = "DEFAULT"
+    bx.settings.iterations = 1
+    assert bpy.ops.cljn.denoise_points() == {"FINISHED"}
+    metrics = __import__(PACKAGE + ".core.evaluation.metrics", fromlist=["metrics"])
+    assert metrics.chamfer(bx.world_points(obj), clean) < metrics.chamfer(noisy, clean)
+    assert np.allclose(np.linalg.norm(bx.attribute(obj, "cljn_normal"), axis=1), 1.0, atol=1e-4)
+    assert sys.modules.get("torch") is None, "torch was imported"
+
+    bx.settings.backend = "TORCH"
+    with pytest.raises(RuntimeError, match="needs torch"):
         bpy.ops.cljn.denoise_points()
-    assert np.array_equal(bx.local_points(obj), points) and bx.attribute_names(obj) == names
+    bx.settings.backend = "PREFERENCES"
+
+    mesh = bpy.data.meshes.new("Tri")
+    mesh.from_pydata(clean[:3].tolist(), [], [(0, 1, 2)])
+    mesh_obj = bpy.data.objects.new("Tri", mesh)
+    bpy.context.scene.collection.objects.link(mesh_obj)
+    bx.select(mesh_obj)
+    with pytest.raises(RuntimeError, match="Install torch"):
+        bpy.ops.cljn.train_model()
 
 
 @in_blender

@@ -1,6 +1,8 @@
 """Python dependencies of the engine inside Blender: what is missing and how to install it.
 
-torch, scipy and safetensors are not bundled with Blender. The Install Dependencies button runs
+scipy and safetensors (required), laspy and lazrs (LAS/LAZ) and torch (optional: GPUs and
+training; the numpy backend runs the network without it) are not bundled with Blender. The
+Install Dependencies and Install torch buttons run
 Blender's own Python pip (`sys.executable -m pip install --target DIR`) into this extension's
 user directory, which `activate()` appends to sys.path at registration. Appending (not
 prepending) keeps Blender's own numpy first. No UI code here; no import of torch either, and
@@ -18,11 +20,13 @@ import sys
 import tempfile
 
 # Import name -> pip requirement. numpy ships with Blender and is never replaced (see pip_command).
+# The engine needs these (its numpy backend runs the network without torch).
 REQUIRED = {
-    "torch": "torch",
     "scipy": "scipy",
     "safetensors": "safetensors",
 }
+# Optional: GPUs (CUDA/MPS), bf16 on CPU, and training. Installed by its own button.
+TORCH = {"torch": "torch"}
 # LAS/LAZ import/export and .las/.laz on the command line; installed with the engine's packages,
 # not needed to denoise.
 LIDAR = {
@@ -84,10 +88,10 @@ def _findable(name: str) -> bool:
 
 
 def refresh() -> dict[str, bool]:
-    """Re-check which dependencies can be found (cheap: no import)."""
+    """Re-check which dependencies (required and optional) can be found (cheap: no import)."""
     importlib.invalidate_caches()
     _status.clear()
-    for name in REQUIRED:
+    for name in (*REQUIRED, *TORCH, *LIDAR):
         _status[name] = _findable(name)
     return dict(_status)
 
@@ -132,16 +136,22 @@ def status() -> dict[str, bool]:
 
 
 def missing() -> list[str]:
-    """Names of dependencies that cannot be found or failed to import."""
+    """Names of required dependencies that cannot be found or failed to import."""
     found = status()
     return [name for name in REQUIRED if not found[name] or name in _import_errors]
 
 
+def torch_missing() -> bool:
+    """True when torch (optional: GPUs and training) cannot be found or failed to import."""
+    return not status().get("torch") or "torch" in _import_errors
+
+
 def check_imports() -> list[str]:
-    """Really import each dependency (slow the first time: torch); returns the missing ones."""
+    """Really import each dependency (slow the first time: torch); returns the missing required
+    ones (a broken torch is remembered for torch_missing)."""
     refresh()
     _import_errors.clear()
-    for name in REQUIRED:
+    for name in (*REQUIRED, *TORCH, *LIDAR):
         if not _status[name]:
             continue
         try:
@@ -153,6 +163,11 @@ def check_imports() -> list[str]:
 
 def import_error(name: str) -> str | None:
     return _import_errors.get(name)
+
+
+TORCH_MESSAGE = ("torch is not installed in Blender's Python; it is needed for training and for a GPU "
+                 "(denoising runs without it on the CPU): press Install torch in Edit > Preferences > "
+                 "Add-ons > CLJN Denoise")
 
 
 def missing_message(names=None) -> str:

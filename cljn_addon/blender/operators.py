@@ -74,6 +74,9 @@ def describe_error(exc: BaseException) -> str:
         if name in deps.REQUIRED:
             deps.refresh()
             return deps.missing_message([name])
+        if name in deps.TORCH:
+            deps.refresh()
+            return deps.TORCH_MESSAGE
         return f"Could not load the CLJN engine ({exc}); try Install Dependencies"
     if isinstance(exc, deps.DependencyError):
         return f"Installing dependencies failed: {exc}"
@@ -362,6 +365,9 @@ class CLJN_OT_train_model(_JobOperator, bpy.types.Operator):
             return None
         if _report_missing_deps(self):
             return None
+        if deps.torch_missing():
+            self.report({"ERROR"}, deps.TORCH_MESSAGE)
+            return None
         sources = [object_io.mesh_world_triangles(o) for o in meshes]
         stamp = time.strftime("%Y%m%d-%H%M%S")
         out_dir = os.path.join(deps.user_dir("models"), f"{bpy.path.clean_name(meshes[0].name)}-{stamp}")
@@ -389,7 +395,8 @@ class CLJN_OT_train_model(_JobOperator, bpy.types.Operator):
 
 
 class CLJN_OT_install_dependencies(_JobOperator, bpy.types.Operator):
-    """Install torch, scipy, safetensors (and laspy, lazrs for LAS/LAZ) into this extension's user directory with Blender's pip"""
+    """Install scipy, safetensors, laspy and lazrs (or the packages given, e.g. torch) into this
+    extension's user directory with Blender's pip"""
     bl_idname = "cljn.install_dependencies"
     bl_label = "Install Dependencies"
     bl_options = {"REGISTER"}
@@ -436,7 +443,7 @@ class CLJN_OT_install_dependencies(_JobOperator, bpy.types.Operator):
 
 
 class CLJN_OT_check_dependencies(bpy.types.Operator):
-    """Import torch, scipy and safetensors now to check that they work"""
+    """Import scipy, safetensors, laspy, lazrs and torch now to check that they work"""
     bl_idname = "cljn.check_dependencies"
     bl_label = "Check Dependencies"
     bl_options = {"REGISTER"}
@@ -447,7 +454,8 @@ class CLJN_OT_check_dependencies(bpy.types.Operator):
         if missing:
             self.report({"WARNING"}, deps.missing_message(missing))
         else:
-            self.report({"INFO"}, "torch, scipy and safetensors import fine")
+            extra = "; torch is not installed (optional)" if deps.torch_missing() else ", torch too"
+            self.report({"INFO"}, f"scipy, safetensors, laspy and lazrs import fine{extra}")
         return {"FINISHED"}
 
 

@@ -48,6 +48,7 @@ class VIEW3D_PT_cljn_denoise(bpy.types.Panel):
         col.prop(settings, "patch_radius")
         col.prop(settings, "orientation")
         col.prop(settings, "device")
+        col.prop(settings, "backend")
         col.prop(settings, "use_mesh_vertices")
 
         selected = list(context.selected_objects)

@@ -20,7 +20,7 @@ from ..core.errors import InputError
 from ..core.options import DenoiseOptions
 from . import object_io
 from .preferences import get_preferences
-from .properties import DEVICE_TO_CORE
+from .properties import BACKEND_TO_CORE, DEVICE_TO_CORE
 
 
 @dataclass
@@ -135,11 +135,20 @@ def _device(context, settings) -> str:
     return DEVICE_TO_CORE[key]
 
 
+def _backend(context, settings) -> str:
+    key = settings.backend
+    if key == "PREFERENCES":
+        prefs = get_preferences(context)
+        key = prefs.backend if prefs is not None else "AUTO"
+    return BACKEND_TO_CORE[key]
+
+
 def options_from_settings(context, settings, normals_only=False) -> DenoiseOptions:
     """The panel's settings (scene.cljn_denoise) as engine options; InputError with a plain
     message when they cannot be used (no camera, missing model file...)."""
     return DenoiseOptions(iterations=settings.iterations,
                           patch_radius_fraction=settings.patch_radius / 100.0,
-                          device=_device(context, settings), normals_only=normals_only,
+                          device=_device(context, settings), backend=_backend(context, settings),
+                          normals_only=normals_only,
                           model_path=_model_path(context, settings),
                           **_orientation(context.scene, settings.orientation))

@@ -1,10 +1,10 @@
-"""Add-on preferences: default model file, default device, and the Python dependencies."""
+"""Add-on preferences: default model file, device and backend, and the Python dependencies."""
 
 import bpy
 from bpy.props import BoolProperty, EnumProperty, StringProperty
 
 from . import deps
-from .properties import DEVICES
+from .properties import BACKENDS, DEVICES
 
 ADDON_PACKAGE = deps.ADDON_PACKAGE
 
@@ -22,19 +22,28 @@ def draw_dependencies(layout, context, compact=False):
     missing = deps.missing()
     col = layout.column(align=True)
     if not compact:
-        for name in deps.REQUIRED:
+        for name in (*deps.REQUIRED, *deps.LIDAR):
             ok = found.get(name) and deps.import_error(name) is None
             col.label(text=f"{name}: {'found' if ok else 'missing'}", icon="CHECKMARK" if ok else "ERROR")
+        ok = not deps.torch_missing()
+        col.label(text=f"torch (optional: GPU, training): {'found' if ok else 'not installed'}",
+                  icon="CHECKMARK" if ok else "INFO")
     if missing:
         box = layout.box()
         box.alert = True
         box.label(text=f"Missing in Blender's Python: {', '.join(missing)}", icon="ERROR")
-        box.label(text="Press Install Dependencies (downloads torch, several hundred MB)")
+        box.label(text="Press Install Dependencies (scipy, safetensors, laspy, lazrs: ~50 MB)")
         box.operator("cljn.install_dependencies", icon="IMPORT")
     elif not compact:
         row = layout.row()
         row.operator("cljn.install_dependencies", text="Reinstall Dependencies", icon="IMPORT")
     if not compact:
+        row = layout.row()
+        op = row.operator("cljn.install_dependencies", text="Install torch", icon="IMPORT")
+        if op is not None:
+            op.packages = "torch"
+        layout.label(text="torch adds GPUs (CUDA/MPS), faster bf16 on recent CPUs and Train Model "
+                          "(several hundred MB); denoising runs without it")
         layout.operator("cljn.check_dependencies", icon="FILE_REFRESH")
 
 
@@ -46,6 +55,8 @@ class CLJN_AddonPreferences(bpy.types.AddonPreferences):
         description="Used when the panel's Model is Default; empty means the model shipped with the extension")
     device: EnumProperty(name="Device", items=DEVICES, default="AUTO",
                          description="Where the network runs when the panel's Device is Default")
+    backend: EnumProperty(name="Backend", items=BACKENDS, default="AUTO",
+                          description="What runs the network when the panel's Backend is Default")
     torch_cpu_only: BoolProperty(
         name="CPU-only torch", default=True,
         description="Install the CPU build of torch (much smaller download); untick for CUDA builds")
@@ -58,8 +69,9 @@ class CLJN_AddonPreferences(bpy.types.AddonPreferences):
         layout.use_property_split = True
         layout.prop(self, "default_model_path")
         layout.prop(self, "device")
+        layout.prop(self, "backend")
         box = layout.box()
-        box.label(text="Dependencies (torch, scipy, safetensors)")
+        box.label(text="Dependencies (scipy, safetensors, laspy, lazrs; torch optional)")
         draw_dependencies(box, context)
         sub = box.column()
         sub.prop(self, "torch_cpu_only")

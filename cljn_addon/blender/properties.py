@@ -22,6 +22,14 @@ DEVICES = (
 )
 PANEL_DEVICES = (("PREFERENCES", "Default", "The device chosen in the add-on preferences"),) + DEVICES
 DEVICE_TO_CORE = {"AUTO": "auto", "CPU": "cpu", "GPU": "gpu"}   # -> core.config.DEVICE_CHOICES
+# Inference backends (preferences); the panel adds "Default" = the preferences'.
+BACKENDS = (
+    ("AUTO", "Auto", "torch when it is installed (GPUs, bf16 on CPU), else numpy"),
+    ("TORCH", "torch", "torch (Install torch in the preferences); needed for a GPU"),
+    ("NUMPY", "numpy", "numpy only, on the CPU: needs nothing beyond what the extension bundles"),
+)
+PANEL_BACKENDS = (("PREFERENCES", "Default", "The backend chosen in the add-on preferences"),) + BACKENDS
+BACKEND_TO_CORE = {"AUTO": "auto", "TORCH": "torch", "NUMPY": "numpy"}   # -> core.config.BACKENDS
 
 
 class CLJN_PG_settings(bpy.types.PropertyGroup):
@@ -38,6 +46,7 @@ class CLJN_PG_settings(bpy.types.PropertyGroup):
         description="Neighbourhood radius in % of the bounding-box diagonal of the cloud (world space)")
     orientation: EnumProperty(name="Orientation", items=ORIENTATIONS, default="OUTWARD")
     device: EnumProperty(name="Device", items=PANEL_DEVICES, default="PREFERENCES")
+    backend: EnumProperty(name="Backend", items=PANEL_BACKENDS, default="PREFERENCES")
     use_mesh_vertices: BoolProperty(
         name="Use Vertices of Meshes", default=False,
         description="Also filter the vertices of meshes that have faces (the faces follow the vertices)")

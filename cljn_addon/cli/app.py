@@ -68,11 +68,22 @@ def main(argv=None) -> int:
         return EXIT_INTERRUPTED
 
 
+# Commands that build or train torch networks; denoise and normals run without torch (numpy).
+NEEDS_TORCH = ("train", "eval", "demo", "bench")
+
+
 def _run_command(name, rest) -> int:
     message = engine_missing_message()
     if message:
         err(message)
         return EXIT_USAGE
+    if name in NEEDS_TORCH and not any(a in ("-h", "--help") for a in rest):
+        from ..core.options import torch_available
+
+        if not torch_available():
+            err(f"error: `{name}` needs torch, which is not installed in this Python "
+                "(pip install -r requirements.txt); denoise and normals run without it")
+            return EXIT_USAGE
     entry = COMMANDS[name][0]
     try:
         code = entry(rest)

@@ -18,6 +18,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--points", type=int, default=100_000)
     parser.add_argument("--iterations", type=int, default=4)
     parser.add_argument("--device", default="auto")
+    parser.add_argument("--backends", nargs="+", default=["torch", "numpy"], choices=["torch", "numpy"],
+                        help="inference backends timed side by side (default: both)")
     parser.add_argument("--skip-full", nargs="*", default=["paper"], metavar="PRESET",
                         help="presets timed on the network only (the paper preset's full run takes ~15 min here)")
     return parser
@@ -28,19 +30,22 @@ def _row(row) -> str:
         full = f"{row['seconds']:.1f} s (peak memory of this process so far {row['peak_gib']:.2f} GiB)"
     else:
         full = f"~{row['estimated_seconds']:.0f} s (network time only, estimated)"
-    return f"| {row['preset']} | {row['points_per_patch']} | {row['patches_per_second']:,.0f} | {full} |"
+    return (f"| {row['preset']} | {row['backend']} | {row['points_per_patch']} | "
+            f"{row['patches_per_second']:,.0f} | {full} |")
 
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
-    from ..core.device import pick_device
     from ..core.evaluation.benchmark import bench_cloud, bench_preset, machine_line
 
-    out(machine_line(pick_device(args.device)))
+    out(machine_line(args.device))
     noisy = bench_cloud(args.points)
-    out(f"| preset | points/patch | network patches/s | {args.points // 1000}K points x {args.iterations} iterations |")
-    out("|---|---|---|---|")
+    out(f"| preset | backend | points/patch | network patches/s | {args.points // 1000}K points x "
+        f"{args.iterations} iterations |")
+    out("|---|---|---|---|---|")
     for name in args.presets:
-        row = bench_preset(name, noisy, args.iterations, args.device, full=name not in args.skip_full)
-        out(_row(row))
+        for backend in args.backends:
+            row = bench_preset(name, noisy, args.iterations, args.device, full=name not in args.skip_full,
+                               backend=backend)
+            out(_row(row))
     return EXIT_OK

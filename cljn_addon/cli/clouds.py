@@ -47,7 +47,7 @@ def options_from_args(args) -> DenoiseOptions:
         patch_radius_fraction=None if args.patch_radius is None else args.patch_radius / 100.0,
         orientation=args.orient, viewpoint=args.viewpoint, device=args.device, seed=args.seed,
         normals_only=args.command == "normals", model_path=args.model,
-        max_displacement=getattr(args, "max_displacement", None))
+        max_displacement=getattr(args, "max_displacement", None), backend=args.backend)
 
 
 def _same_file(a: Path, b: Path) -> bool:
@@ -235,8 +235,13 @@ class CloudCommand:
 
     def _load_model(self):
         from ..core.errors import ModelMismatchError, ModelNotFoundError
+        from ..core.options import resolve_backend
 
-        if self.args.threads:
+        try:
+            backend = resolve_backend(self.options.backend)
+        except InputError as exc:
+            raise _ModelError(f"backend: {exc}") from None
+        if self.args.threads and backend == "torch":
             import torch
 
             torch.set_num_threads(self.args.threads)
@@ -262,15 +267,17 @@ class CloudCommand:
         bound = float(getattr(res, "displacement_bound", float("inf")))
         noise = (f"estimated noise {sigma:.4g} (no point moved more than {bound:.4g}), "
                  if math.isfinite(sigma) else "")
+        ran_on = getattr(res, "ran_on", "")
+        where = f"on {ran_on}, " if ran_on else ""
         line = (f"{label}: {n} points, {outliers} outliers flagged, "
-                f"mean displacement {disp:.4g}, {noise}{seconds:.1f} s")
+                f"mean displacement {disp:.4g}, {noise}{where}{seconds:.1f} s")
         if output is not None:
             line += f" -> {output}"
         out(line)
         return {"points": n, "outliers": outliers, "mean_displacement": disp,
                 "noise_sigma": sigma if math.isfinite(sigma) else None,
                 "displacement_bound": bound if math.isfinite(bound) else None,
-                "seconds": round(seconds, 3)}
+                "seconds": round(seconds, 3), "ran_on": ran_on}
 
     def _keep_preview(self, job, label, before, res):
         if self.args.preview:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import math
 
-from ..core.config import DEVICE_CHOICES, ORIENTATIONS
+from ..core.config import BACKENDS, DEVICE_CHOICES, ORIENTATIONS
 from ..core.formats import POINT_SUFFIXES
 
 PROG = "run.py"
@@ -134,8 +134,11 @@ def _add_cloud_options(p: argparse.ArgumentParser, normals_only: bool):
     eng.add_argument("--device", default="auto", type=str.lower, choices=DEVICE_CHOICES,
                      metavar="DEVICE",
                      help="auto (default), cpu, cuda, gpu or mps")
+    eng.add_argument("--backend", default="auto", type=str.lower, choices=BACKENDS,
+                     help="what runs the network: auto (default: torch when installed, else "
+                          "numpy), torch (GPUs, bf16 on CPU) or numpy (CPU, no torch needed)")
     eng.add_argument("--threads", type=_positive_int, metavar="N",
-                     help="CPU threads for the network (torch.set_num_threads)")
+                     help="CPU threads for the network (torch backend: torch.set_num_threads)")
     eng.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     misc = p.add_argument_group("messages")
     misc.add_argument("--no-progress", action="store_true", help="no progress bar or lines")

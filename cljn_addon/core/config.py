@@ -13,6 +13,9 @@ DEFAULT_WEIGHTS = WEIGHTS_DIR / "cljn_small.safetensors"
 # Engine option values (one table each; the CLI's choices and the engine's checks use them).
 ORIENTATIONS = ("outward", "viewpoint", "none")
 DEVICE_CHOICES = ("auto", "cpu", "cuda", "gpu", "mps")
+# Inference backends: torch (GPU, bf16 on CPU) or numpy (no torch needed); auto takes torch
+# when it is installed.
+BACKENDS = ("auto", "torch", "numpy")
 
 
 @dataclass(frozen=True)

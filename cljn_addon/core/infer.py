@@ -10,13 +10,10 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
-import torch
 from scipy.spatial import cKDTree
 
 from .config import INFLATION_NEIGHBOURS, LRMA_NEIGHBOURS, MIN_BALL_POINTS, ORIENTATIONS
-from .device import autocast, pick_device
 from .errors import Cancelled, InputError
-from .model import inference_net
 from .noise import DISPLACEMENT_BOUND_SIGMAS, clamp_displacement, estimate_noise_sigma
 from .orient import orient_normals
 from .patches import PatchSource, bbox_diagonal, from_frame, make_patches
@@ -35,6 +32,7 @@ class DenoiseResult:
     iterations: int
     noise_sigma: float = float("nan")        # estimated scanner noise (cloud units)
     displacement_bound: float = float("inf")  # no point moved further than this
+    ran_on: str = ""                         # device and backend, e.g. "cpu (numpy)"
 
 
 def validate_points(points) -> np.ndarray:
@@ -70,25 +68,46 @@ def _chunk_size(model):
     return max(64, ACTIVATION_BUDGET // (cfg.points_per_patch * max(cfg.encoder_channels)))
 
 
-def network_pass(model, points, radius, rng, device, points_per_patch=None, report=None, cancel=None):
+def predictor(model, device="auto", mixed_precision=True):
+    """(predict, patches per chunk, where it runs) for a torch CLJNNet or a numpy_net.NumpyNet.
+    predict: (B, n, 3) float32 patches -> (displacement, unit normal) arrays in the patch frame.
+    torch is imported only for a torch model; mixed_precision=False keeps it in float32."""
+    if getattr(model, "backend", "torch") == "numpy":
+        if (device or "auto").lower() not in ("auto", "cpu"):
+            raise InputError(f"the numpy backend runs on the CPU only (device {device!r} asked for); "
+                             "choose the torch backend for a GPU")
+        return model, model.chunk_size(), "cpu (numpy)"
+    import torch
+
+    from .device import autocast, pick_device
+    from .model import inference_net
+
+    dev = pick_device(device)
+    net = inference_net(model.to(dev).eval())
+
+    def predict(patches):
+        with torch.inference_mode(), autocast(dev, enabled=mixed_precision):
+            d, n = net(torch.from_numpy(patches).to(dev))
+        return d.float().cpu().numpy(), n.float().cpu().numpy()
+
+    return predict, _chunk_size(model), f"{dev.type} (torch)"
+
+
+def network_pass(predict, chunk, points, radius, rng, points_per_patch, report=None, cancel=None):
     """Displacement (world units) and unit normal for every point, from its patch."""
-    n_points = points_per_patch or model.config.points_per_patch
-    source = PatchSource(points, radius, n_points, rng)
+    source = PatchSource(points, radius, points_per_patch, rng)
     disp = np.empty_like(points)
     normals = np.empty_like(points)
-    chunk = _chunk_size(model)
-    with torch.inference_mode():
-        for start in range(0, len(points), chunk):
-            if cancel is not None and cancel.is_set():
-                raise Cancelled("cancelled")
-            stop = min(start + chunk, len(points))
-            patches, frames, _ = make_patches(source, points[start:stop], rng)
-            with autocast(device):
-                d, n = model(torch.from_numpy(patches).to(device))
-            disp[start:stop] = from_frame(d.float().cpu().numpy().astype(np.float64), frames) * radius
-            normals[start:stop] = from_frame(n.float().cpu().numpy().astype(np.float64), frames)
-            if report is not None:
-                report(stop / len(points))
+    for start in range(0, len(points), chunk):
+        if cancel is not None and cancel.is_set():
+            raise Cancelled("cancelled")
+        stop = min(start + chunk, len(points))
+        patches, frames, _ = make_patches(source, points[start:stop], rng)
+        d, n = predict(patches)
+        disp[start:stop] = from_frame(np.asarray(d, np.float64), frames) * radius
+        normals[start:stop] = from_frame(np.asarray(n, np.float64), frames)
+        if report is not None:
+            report(stop / len(points))
     normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
     return disp, normals
 
@@ -165,8 +184,8 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
     fraction = patch_radius_fraction or model.config.patch_radius_fraction
     if not 0 < fraction < 1:
         raise InputError(f"patch radius fraction must be between 0 and 1, got {fraction!r}")
-    dev = pick_device(device)
-    model = inference_net(model.to(dev).eval())
+    predict, chunk, ran_on = predictor(model, device)
+    points_per_patch = points_per_patch or model.config.points_per_patch
     rng = np.random.default_rng(seed)
 
     def report(fraction_done, message):
@@ -202,7 +221,7 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
         def net_report(f, it=it, base=base):
             report(base + 0.85 * f / iterations, f"iteration {it + 1}/{iterations}: network {int(f * 100)}%")
 
-        disp, new_normals = network_pass(model, current, radius, rng, dev, points_per_patch,
+        disp, new_normals = network_pass(predict, chunk, current, radius, rng, points_per_patch,
                                          net_report, cancel)
         if normals is not None:
             # Keep the sign of the previous iteration's normal (the network's is unoriented).
@@ -242,4 +261,4 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
     report(1.0, "done")
     return DenoiseResult(points=out_points, normals=all_normals.astype(np.float32), outliers=outliers,
                          displacement=displacement, seconds=time.time() - t0, iterations=iterations,
-                         noise_sigma=sigma, displacement_bound=bound)
+                         noise_sigma=sigma, displacement_bound=bound, ran_on=ran_on)

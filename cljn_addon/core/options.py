@@ -7,10 +7,11 @@ them to `core.denoise` or `core.estimate_normals`. Imports neither torch nor bpy
 from __future__ import annotations
 
 import dataclasses
+import importlib.util
 import os
 from dataclasses import dataclass
 
-from .config import ORIENTATIONS
+from .config import BACKENDS, ORIENTATIONS
 from .errors import InputError
 
 _model_cache: dict = {}     # (path, mtime) -> loaded network; one model at a time
@@ -20,12 +21,34 @@ def clear_model_cache():
     _model_cache.clear()
 
 
+def torch_available() -> bool:
+    try:
+        return importlib.util.find_spec("torch") is not None
+    except (ImportError, ValueError):
+        return False
+
+
+def resolve_backend(name: str = "auto") -> str:
+    """'torch' or 'numpy' for a backend choice; auto takes torch when it is installed (its
+    GPU paths and bf16 on CPU), numpy otherwise."""
+    name = (name or "auto").lower()
+    if name not in BACKENDS:
+        raise InputError(f"unknown backend {name!r}; choose one of {', '.join(BACKENDS)}")
+    if name == "torch" and not torch_available():
+        raise InputError("the torch backend needs torch, which is not installed: choose the numpy "
+                         "backend (or auto), or install torch")
+    if name == "auto":
+        return "torch" if torch_available() else "numpy"
+    return name
+
+
 @dataclass(frozen=True)
 class DenoiseOptions:
     """iterations: filtering passes (ignored when normals_only). patch_radius_fraction: of the
     bbox diagonal, None for the model's own (5%). orientation: one of config.ORIENTATIONS;
     'viewpoint' needs viewpoint=(x, y, z) in world space. model_path: None for the shipped model.
     normals_only: estimate normals, positions untouched (core.estimate_normals).
+    backend: 'auto', 'torch' or 'numpy' (see resolve_backend).
     max_displacement: cap on how far any point moves (cloud units); None for 3 x the noise
     sigma estimated from the cloud."""
 
@@ -38,6 +61,7 @@ class DenoiseOptions:
     normals_only: bool = False
     model_path: str | None = None
     max_displacement: float | None = None
+    backend: str = "auto"
 
     def __post_init__(self):
         if self.orientation not in ORIENTATIONS:
@@ -45,6 +69,8 @@ class DenoiseOptions:
                              f"choose one of {', '.join(ORIENTATIONS)}")
         if self.viewpoint is not None:
             object.__setattr__(self, "viewpoint", tuple(float(v) for v in self.viewpoint))
+        if (self.backend or "auto").lower() not in BACKENDS:
+            raise InputError(f"unknown backend {self.backend!r}; choose one of {', '.join(BACKENDS)}")
 
     def replace(self, **changes) -> "DenoiseOptions":
         return dataclasses.replace(self, **changes)
@@ -62,12 +88,16 @@ class DenoiseOptions:
         return kwargs
 
     def load_model(self):
-        """The network for these options (the shipped one when model_path is None), loaded once
-        per file and modification time."""
-        from .model import load_model
+        """The network for these options (the shipped one when model_path is None) on their
+        backend, loaded once per file, modification time and backend."""
+        backend = resolve_backend(self.backend)
+        if backend == "numpy":
+            from .numpy_net import load_numpy_net as load_model
+        else:
+            from .model import load_model
 
         path = self.model_path
-        key = (path, os.path.getmtime(path) if path and os.path.exists(path) else None)
+        key = (path, os.path.getmtime(path) if path and os.path.exists(path) else None, backend)
         model = _model_cache.get(key)
         if model is None:
             model = load_model(path)
