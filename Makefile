@@ -30,14 +30,18 @@ extension: $(VENV_STAMP)
 	$(PY) tools/build_extension.py --dist "$(or $(DIST),dist)" $(if $(PLATFORMS),--platforms $(PLATFORMS))
 
 # The extension tests against the bpy wheel of another Blender (4.2 LTS, 4.5 LTS): a venv in
-# .cache/venv-bpy-<version> with that bpy, torch (test fixtures) and pytest; the extension
-# itself gets scipy & co from its bundled wheels. `make test-blender BPY=4.2.23`.
+# .cache/venv-bpy-<version> with that bpy, numpy<2 (what Blender ships) and the rest of
+# requirements.txt (the command line the tests compare with needs it); the installed extension
+# gets its packages from its bundled wheels, and tests/test_extension_bare.py checks that with
+# bpy alone. `make test-blender BPY=4.2.23`.
 BPY ?= 4.2.23
 BPY_VENV := .cache/venv-bpy-$(BPY)
 test-blender: $(VENV_STAMP)
 	test -x $(BPY_VENV)/bin/python || python3.11 -m venv $(BPY_VENV)
-	$(BPY_VENV)/bin/python -m pip install --quiet "bpy==$(BPY)" torch==2.13.0 "pytest>=8,<9"
-	$(BPY_VENV)/bin/python -m pytest -q tests/test_extension.py tests/test_extension_ops.py tests/test_extension_las.py tests/test_extension_bare.py
+	grep -v -E '^(bpy|cgal|ruff)==' requirements.txt > $(BPY_VENV)/requirements-matrix.txt
+	$(BPY_VENV)/bin/python -m pip install --quiet "bpy==$(BPY)" "numpy<2" -r $(BPY_VENV)/requirements-matrix.txt
+	$(BPY_VENV)/bin/python -m pytest -q tests/test_extension.py tests/test_extension_ops.py \
+		tests/test_extension_las.py tests/test_extension_bare.py
 
 clean-venv:
 	rm -rf .venv

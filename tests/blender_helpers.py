@@ -284,9 +284,21 @@ class BlenderTest:
         m = np.array(obj.matrix_world, dtype=np.float64)
         return self.local_points(obj).astype(np.float64) @ m[:3, :3].T + m[:3, 3]
 
-    def world_normals(self, obj, name="custom_normal"):
+    @property
+    def normal_attr(self) -> str:
+        """Where the normals are: Blender 5.0's custom_normal; 4.x has only cljn_normal."""
+        return "custom_normal" if self.bpy.app.version >= (5, 0, 0) else "cljn_normal"
+
+    @property
+    def point_cloud_kind(self) -> str:
+        """POINTCLOUD where Blender can convert a mesh to one (not 4.2), else MESH."""
+        prop = self.bpy.ops.object.convert.get_rna_type().properties["target"]
+        return "POINTCLOUD" if "POINTCLOUD" in {i.identifier for i in prop.enum_items} else "MESH"
+
+    def world_normals(self, obj, name=None):
         import numpy as np
 
+        name = name or self.normal_attr
         m3 = np.array(obj.matrix_world, dtype=np.float64)[:3, :3]
         n = self.attribute(obj, name).astype(np.float64) @ np.linalg.inv(m3)
         return n / np.linalg.norm(n, axis=1, keepdims=True)

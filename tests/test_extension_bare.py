@@ -37,7 +37,8 @@ def bare_python():
     python = venv / "bin" / "python"
     if not python.exists():
         subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True)
-        proc = subprocess.run([str(python), "-m", "pip", "install", "--quiet", f"bpy=={BPY_VERSION}"],
+        # numpy<2: what every Blender from 4.2 to 5.0 ships.
+        proc = subprocess.run([str(python), "-m", "pip", "install", "--quiet", f"bpy=={BPY_VERSION}", "numpy<2"],
                               capture_output=True, text=True, timeout=1200)
         if proc.returncode != 0:
             pytest.skip(f"could not install bpy {BPY_VERSION} into a bare venv: {proc.stderr[-500:]}")

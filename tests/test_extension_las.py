@@ -53,7 +53,7 @@ def test_import_denoise_export_keeps_fields_and_georeferencing(bx):
         src = _make_las(bx.tmp / f"scan{fmt}.laz", fmt=fmt)
         assert bpy.ops.cljn.import_las(filepath=str(src), as_point_cloud=as_point_cloud) == {"FINISHED"}
         obj = bpy.context.active_object
-        assert obj.type == ("POINTCLOUD" if as_point_cloud else "MESH"), obj.type
+        assert obj.type == (bx.point_cloud_kind if as_point_cloud else "MESH"), obj.type
         a = laspy.read(str(src))
         # Recentred: small float32 coordinates, the offset kept on the object.
         local = bx.local_points(obj)
