@@ -329,3 +329,19 @@ def test_real_laz_scan_with_the_shipped_model(tmp_path):
     assert _fields_equal(a, b)
     move = np.linalg.norm(np.stack([b.x - a.x, b.y - a.y, b.z - a.z], axis=1), axis=1)
     assert 0 < np.count_nonzero(move) and move.max() <= report["displacement_bound"] + 0.01 * np.sqrt(3) / 2
+
+
+def test_evlrs_are_kept(tmp_path):
+    """LAS 1.4 extended VLRs (after the points) come back in the output."""
+    src = tmp_path / "evlr.laz"
+    make_las(src, _cloud(400), fmt=6)
+    data = laspy.read(str(src))
+    data.evlrs = laspy.vlrs.vlrlist.VLRList([laspy.VLR(user_id="CLJN_TEST", record_id=42, description="kept",
+                                          record_data=b"x" * 70000)])
+    data.write(str(src))
+    cloud = pointio.read_points(src, with_fields=False)
+    out = tmp_path / "out.laz"
+    pointio.write_points(out, pointio.PointCloud(cloud.points, np.tile(np.float32([0, 0, 1]), (400, 1)),
+                                                 source=cloud.source, origin=cloud.origin))
+    evlrs = laspy.read(str(out)).evlrs
+    assert [(v.user_id, v.record_id, len(v.record_data)) for v in evlrs] == [("CLJN_TEST", 42, 70000)]

@@ -127,3 +127,22 @@ print('ok')
 """
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0 and "ok" in proc.stdout, proc.stderr[-3000:]
+
+
+def test_command_line_without_torch(tmp_path, model_path):
+    """torch unimportable: `denoise` runs on numpy; `train` says it needs torch (exit 2)."""
+    from cljn_addon.core.evaluation.shapes import sample_shape
+    from cljn_addon.core.formats.points import PointCloud, write_points
+
+    noisy, _, _ = sample_shape("sphere", 2000, noise=0.01, seed=1)
+    write_points(tmp_path / "in.ply", PointCloud(noisy))
+    runner = ("import runpy, sys; sys.modules['torch'] = None; sys.argv = ['run.py'] + sys.argv[1:]; "
+              f"runpy.run_path({str(ROOT / 'standalone' / 'run.py')!r}, run_name='__main__')")
+    proc = subprocess.run([sys.executable, "-c", runner, "denoise", str(tmp_path / "in.ply"), "-o",
+                           str(tmp_path / "out.ply"), "--model", str(model_path), "--iterations", "1",
+                           "--no-progress"], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert "on cpu (numpy)" in proc.stdout and (tmp_path / "out.ply").exists()
+    proc = subprocess.run([sys.executable, "-c", runner, "train", "--out", str(tmp_path / "run")],
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 2 and "`train` needs torch" in proc.stderr, proc.stderr
