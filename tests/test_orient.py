@@ -59,3 +59,24 @@ def test_outward_orientation_of_thin_parts(name):
     rng = np.random.default_rng(0)
     scrambled = truth * np.where(rng.random(len(truth)) < 0.5, -1.0, 1.0)[:, None]
     assert sign_agreement(orient_normals(noisy, scrambled, "outward"), truth) >= 0.99
+
+
+def test_open_terrain_faces_up_and_a_flat_closed_box_still_faces_out():
+    """A terrain scan has no inside (its flux is ~0): outward turns it up (+z); a flat closed
+    box, whose bottom must face down, is still oriented by its flux."""
+    from cljn_addon.core.evaluation.shapes import box, normalise_unit_diagonal, sample_mesh
+    from cljn_addon.core.orient import orient_outward
+
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(0, 200, (20000, 2))
+    terrain = np.c_[xy, 2 * np.sin(xy[:, 0] / 10) + rng.normal(0, 0.01, 20000)]
+    truth = np.c_[-0.2 * np.cos(xy[:, 0] / 10), np.zeros(20000), np.ones(20000)]
+    truth /= np.linalg.norm(truth, axis=1, keepdims=True)
+    out = orient_outward(terrain, truth * rng.choice([-1, 1], size=(20000, 1)))
+    assert np.mean(out[:, 2] > 0) > 0.99
+
+    v, f = box((2.0, 2.0, 0.2))
+    v = normalise_unit_diagonal(v)
+    clean, normals, _ = sample_mesh(v, f, 20000, rng)
+    out = orient_outward(clean, normals * rng.choice([-1, 1], size=(20000, 1)))
+    assert np.mean(np.einsum("ij,ij->i", out, normals) > 0) > 0.99

@@ -11,8 +11,9 @@ CAD edges:
    normal a surface through both points would have at p_j (this stays decisive across
    90-degree edges, where the plain dot product is zero). Regions are joined along a
    spanning tree of the most confident votes.
-3. Each connected piece is turned outward by a vote of its points farthest from its
-   centroid, where an outward normal must point away from the centroid.
+3. Each connected piece is turned outward by its flux (the sum of n . (p - centroid), positive
+   for outward normals on a closed surface). An open piece whose flux is ambiguous and which
+   is a flat height field (a terrain or street scan) is turned to face up (+z) instead.
 
 Viewpoint: each normal is turned to face the given scanner/camera position.
 """
@@ -27,6 +28,12 @@ from .config import ORIENTATIONS
 from .errors import InputError
 
 SMOOTH_COS = 0.9
+# An open piece (a terrain or street scan) has no inside, so its flux says nothing: when the
+# flux is this small a share of its magnitude, and the piece is a flat height field (most
+# normals within ~45 degrees of vertical, height under 30% of its width), it faces up (+z).
+AMBIGUOUS_FLUX = 0.3
+HEIGHT_FIELD_SHARE = 0.6
+HEIGHT_FIELD_FLATNESS = 0.3
 
 
 def _reflected_agreement(points, normals, i, j):
@@ -124,9 +131,27 @@ def orient_outward(points: np.ndarray, normals: np.ndarray, k: int = 10) -> np.n
     n_comp, labels = connected_components(coo_matrix((np.ones(len(i)), (i, j)), shape=(n, n)), directed=False)
     centres = np.stack([np.bincount(labels, weights=points[:, a], minlength=n_comp) for a in range(3)], axis=1)
     centres /= np.bincount(labels, minlength=n_comp)[:, None]
-    flux = np.bincount(labels, weights=np.einsum("ec,ec->e", oriented, points - centres[labels]), minlength=n_comp)
-    oriented *= np.where(flux[labels] < 0, -1.0, 1.0)[:, None]
+    along = np.einsum("ec,ec->e", oriented, points - centres[labels])
+    flux = np.bincount(labels, weights=along, minlength=n_comp)
+    decide = np.where(_open_height_field(points, oriented, labels, n_comp, flux, along),
+                      np.bincount(labels, weights=oriented[:, 2], minlength=n_comp), flux)
+    oriented *= np.where(decide[labels] < 0, -1.0, 1.0)[:, None]
     return oriented
+
+
+def _open_height_field(points, normals, labels, n_comp, flux, along) -> np.ndarray:
+    """Per piece: True for an open, flat height field (terrain seen from above), whose outward
+    side the flux cannot tell."""
+    magnitude = np.bincount(labels, weights=np.abs(along), minlength=n_comp)
+    size = np.bincount(labels, minlength=n_comp)
+    vertical = np.bincount(labels, weights=np.abs(normals[:, 2]) > 0.7, minlength=n_comp) / size
+    order = np.argsort(labels, kind="stable")
+    starts = np.searchsorted(labels[order], np.arange(n_comp))
+    lo = np.minimum.reduceat(points[order], starts, axis=0)
+    hi = np.maximum.reduceat(points[order], starts, axis=0)
+    width = np.linalg.norm(hi[:, :2] - lo[:, :2], axis=1)
+    return ((np.abs(flux) < AMBIGUOUS_FLUX * magnitude) & (vertical > HEIGHT_FIELD_SHARE)
+            & (hi[:, 2] - lo[:, 2] < HEIGHT_FIELD_FLATNESS * width))
 
 
 def orient_toward(points, normals, viewpoint):
