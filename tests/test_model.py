@@ -6,7 +6,6 @@ import pytest
 import torch
 
 from cljn_addon.core import ModelMismatchError, ModelNotFoundError, build_model, load_model, save_model
-from cljn_addon.core import model as model_module
 from cljn_addon.core.config import PAPER
 
 
@@ -75,9 +74,13 @@ def test_missing_files_give_clear_errors(tmp_path, monkeypatch):
     (tmp_path / "bad.json").write_text(build_model("tiny").config.to_json())
     with pytest.raises(ModelMismatchError, match="not a readable"):
         load_model(tmp_path / "bad.safetensors")
-    monkeypatch.setattr(model_module, "DEFAULT_WEIGHTS", tmp_path / "absent.safetensors")
-    with pytest.raises(ModelNotFoundError, match="No trained default model"):
-        load_model()
+    from cljn_addon.core import weights
+    from cljn_addon.core.numpy_net import load_numpy_net
+
+    monkeypatch.setattr(weights, "DEFAULT_WEIGHTS", tmp_path / "absent.safetensors")
+    for loader in (load_model, load_numpy_net):          # both backends refuse alike
+        with pytest.raises(ModelNotFoundError, match="No trained default model"):
+            loader()
 
 
 def test_weights_file_holds_no_pickle(tmp_path):

@@ -12,9 +12,10 @@ from cljn_addon.core import InputError
 from cljn_addon.core.errors import ModelMismatchError
 from cljn_addon.core.evaluation import shapes
 from cljn_addon.core.infer import network_pass, predictor
-from cljn_addon.core.numpy_net import expected_tensors, load_numpy_net
+from cljn_addon.core.numpy_net import load_numpy_net
 from cljn_addon.core.options import DenoiseOptions, resolve_backend
 from cljn_addon.core.patches import bbox_diagonal
+from cljn_addon.core.weights import expected_tensors
 
 ROOT = Path(__file__).resolve().parents[1]
 SHIPPED = ROOT / "cljn_addon" / "weights" / "cljn_small.safetensors"

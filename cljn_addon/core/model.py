@@ -11,8 +11,9 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from .config import DEFAULT_WEIGHTS, ModelConfig, get_preset
-from .errors import ModelMismatchError, ModelNotFoundError
+from . import weights
+from .config import DEFAULT_WEIGHTS, ModelConfig, get_preset  # noqa: F401 (DEFAULT_WEIGHTS: re-exported)
+from .weights import config_path_for
 
 
 class Encoder(nn.Module):
@@ -139,10 +140,6 @@ def build_model(config="small") -> CLJNNet:
     return CLJNNet(config)
 
 
-def config_path_for(weights_path) -> Path:
-    return Path(weights_path).with_suffix(".json")
-
-
 def save_model(model: CLJNNet, path, extra_metadata: dict | None = None) -> Path:
     """Write weights (safetensors, no pickle) and the JSON config beside them, atomically."""
     from safetensors.torch import save_file
@@ -166,47 +163,13 @@ def load_model(path=None, device="cpu") -> CLJNNet:
     """The shipped default model (path None) or the given weights file, in eval mode.
 
     Refuses, with a message that names the problem, a missing file, a missing or unreadable
-    config, and weights whose tensors do not match the config.
+    config, and weights whose tensors do not match the config (core/weights.py).
     """
-    from safetensors import SafetensorError
     from safetensors.torch import load_file
 
-    if path is None:
-        path = DEFAULT_WEIGHTS
-        if not path.exists():
-            raise ModelNotFoundError(
-                f"No trained default model ships with this build yet (expected {path}). "
-                "Train one with `python standalone/run.py train` and pass its weights file.")
-    path = Path(path)
-    if not path.exists():
-        raise ModelNotFoundError(f"Model file not found: {path}")
-    cfg_path = config_path_for(path)
-    if not cfg_path.exists():
-        raise ModelMismatchError(f"Model config missing: {cfg_path} must sit beside {path.name}")
-    try:
-        config = ModelConfig.from_dict(json.loads(cfg_path.read_text()))
-    except (ValueError, TypeError) as exc:
-        raise ModelMismatchError(f"Model config {cfg_path} is not valid: {exc}") from None
-    try:
-        state = load_file(str(path))
-    except (SafetensorError, OSError, ValueError) as exc:
-        raise ModelMismatchError(f"{path} is not a readable safetensors weights file: {exc}") from None
+    path, cfg_path, config = weights.locate(path)
+    state = weights.read_state(path, load_file)
+    weights.check_tensors(path, cfg_path, config, state)
     model = CLJNNet(config)
-    expected = model.state_dict()
-    missing = sorted(set(expected) - set(state))
-    unexpected = sorted(set(state) - set(expected))
-    if missing or unexpected:
-        parts = []
-        if missing:
-            parts.append(f"missing {len(missing)} tensor(s), e.g. {missing[0]}")
-        if unexpected:
-            parts.append(f"{len(unexpected)} unexpected tensor(s), e.g. {unexpected[0]}")
-        raise ModelMismatchError(f"{path.name} does not match its config {cfg_path.name} "
-                                 f"(preset {config.preset!r}): " + "; ".join(parts))
-    for key, tensor in expected.items():
-        if tuple(state[key].shape) != tuple(tensor.shape):
-            raise ModelMismatchError(
-                f"{path.name} does not match its config {cfg_path.name}: tensor {key} has shape "
-                f"{tuple(state[key].shape)}, the config needs {tuple(tensor.shape)}")
     model.load_state_dict(state)
     return model.to(device).eval()

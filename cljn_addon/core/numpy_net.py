@@ -4,52 +4,17 @@ The regression branch (encoder f, regressor h) with BatchNorm folded into each L
 as model.InferenceNet does in torch: per-point Linear+ReLU rows as float32 matrix products,
 a max-pool over each patch, then the regressor and tanh. Weights come from the safetensors
 file through safetensors' numpy API (no pickle); the tensor names and shapes a config implies
-are derived here without torch, so a file that does not match its config is refused the same
-way as by model.load_model. Training needs torch; inference does not.
+are derived without torch (core/weights.py), so a file that does not match its config is
+refused the same way as by model.load_model. Training needs torch; inference does not.
 """
 from __future__ import annotations
 
-import json
-from pathlib import Path
-
 import numpy as np
 
-from .config import DEFAULT_WEIGHTS, ModelConfig
-from .errors import ModelMismatchError, ModelNotFoundError
+from . import weights
+from .config import ModelConfig
 
 PATCHES_PER_BLOCK = 64   # ~8K rows: each layer's output stays in cache for its bias and ReLU
-
-
-def _linear_bn(prefix, index, c_in, c_out, shapes):
-    shapes[f"{prefix}.{index}.weight"] = (c_out, c_in)
-    shapes[f"{prefix}.{index}.bias"] = (c_out,)
-    for name in ("weight", "bias", "running_mean", "running_var"):
-        shapes[f"{prefix}.{index + 1}.{name}"] = (c_out,)
-    shapes[f"{prefix}.{index + 1}.num_batches_tracked"] = ()
-
-
-def _mlp_shapes(prefix, c_in, hidden, c_out, dropout, shapes):
-    """Names and shapes of model._mlp: [Linear, BN, ReLU, (Dropout)] per hidden, then Linear."""
-    index = 0
-    for c in hidden:
-        _linear_bn(prefix, index, c_in, c, shapes)
-        index += 4 if dropout else 3
-        c_in = c
-    shapes[f"{prefix}.{index}.weight"] = (c_out, c_in)
-    shapes[f"{prefix}.{index}.bias"] = (c_out,)
-
-
-def expected_tensors(config: ModelConfig) -> dict:
-    """{tensor name: shape} of CLJNNet(config)'s state dict, computed without torch."""
-    shapes: dict = {}
-    c_in = 3
-    for i, c in enumerate(config.encoder_channels):
-        _linear_bn("encoder.mlp", 3 * i, c_in, c, shapes)
-        c_in = c
-    heads = list(config.head_channels)
-    _mlp_shapes("head.mlp", config.feature_dim, heads[:-1], heads[-1], 0.0, shapes)
-    _mlp_shapes("regressor.mlp", config.feature_dim, config.regressor_channels, 6, config.dropout, shapes)
-    return shapes
 
 
 def _folded(state, prefix, hidden_count, step):
@@ -119,40 +84,11 @@ class NumpyNet:
 
 
 def load_numpy_net(path=None) -> NumpyNet:
-    """The shipped model (path None) or a weights file, for the numpy backend; refuses a
-    missing file, a missing or invalid config and tensors that do not match it."""
-    from safetensors import SafetensorError
+    """The shipped model (path None) or a weights file, for the numpy backend; refused exactly
+    as model.load_model refuses it (core/weights.py)."""
     from safetensors.numpy import load_file
 
-    if path is None:
-        path = DEFAULT_WEIGHTS
-        if not path.exists():
-            raise ModelNotFoundError(f"No trained default model ships with this build yet (expected {path}).")
-    path = Path(path)
-    if not path.exists():
-        raise ModelNotFoundError(f"Model file not found: {path}")
-    cfg_path = path.with_suffix(".json")
-    if not cfg_path.exists():
-        raise ModelMismatchError(f"Model config missing: {cfg_path} must sit beside {path.name}")
-    try:
-        config = ModelConfig.from_dict(json.loads(cfg_path.read_text()))
-    except (ValueError, TypeError) as exc:
-        raise ModelMismatchError(f"Model config {cfg_path} is not valid: {exc}") from None
-    try:
-        state = load_file(str(path))
-    except (SafetensorError, OSError, ValueError) as exc:
-        raise ModelMismatchError(f"{path} is not a readable safetensors weights file: {exc}") from None
-    expected = expected_tensors(config)
-    missing = sorted(set(expected) - set(state))
-    unexpected = sorted(set(state) - set(expected))
-    wrong = sorted(k for k in set(expected) & set(state) if tuple(state[k].shape) != expected[k])
-    if missing or unexpected or wrong:
-        parts = []
-        if missing:
-            parts.append(f"missing {', '.join(missing[:3])}" + ("..." if len(missing) > 3 else ""))
-        if unexpected:
-            parts.append(f"unexpected {', '.join(unexpected[:3])}" + ("..." if len(unexpected) > 3 else ""))
-        for k in wrong[:3]:
-            parts.append(f"{k} has shape {tuple(state[k].shape)}, the config needs {expected[k]}")
-        raise ModelMismatchError(f"{path} does not match its config {cfg_path.name} ({'; '.join(parts)})")
+    path, cfg_path, config = weights.locate(path)
+    state = weights.read_state(path, load_file)
+    weights.check_tensors(path, cfg_path, config, state)
     return NumpyNet(config, state)
