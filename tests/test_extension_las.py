@@ -100,6 +100,13 @@ def test_import_denoise_export_keeps_fields_and_georeferencing(bx):
         assert np.allclose(normals, bx.attribute(obj, "cljn_normal"), atol=1e-5)
         assert np.array_equal(np.asarray(c["cljn_outlier"]).astype(bool), bx.attribute(obj, "cljn_outlier"))
 
+        if fmt == 6:
+            # A colour painted on a cloud whose file has no RGB: exported with a warning, not lost silently.
+            obj.data.color_attributes.new(las_io.COLOR, "FLOAT_COLOR", "POINT")
+            warnings = las_io.export_las(obj, bx.tmp / "painted.las")
+            assert any("has no RGB" in w for w in warnings), warnings
+            obj.data.color_attributes.remove(obj.data.color_attributes[las_io.COLOR])
+
         # Restore Original, export again: the exact input integers come back.
         assert bpy.ops.cljn.restore_original() == {"FINISHED"}
         back = bx.tmp / f"back{fmt}.las"

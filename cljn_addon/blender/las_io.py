@@ -176,7 +176,10 @@ def _apply_visible_fields(obj, view, n, warnings):
             warnings.append(f"'{obj.name}': '{field}' values outside {info.min}..{info.max} were clipped")
         view[field] = np.clip(values, info.min, info.max)
     color = obj.data.color_attributes.get(COLOR) if hasattr(obj.data, "color_attributes") else None
-    if color is not None and color.domain == "POINT" and {"red", "green", "blue"} <= dims:
+    if color is not None and not {"red", "green", "blue"} <= dims:
+        warnings.append(f"'{obj.name}': its '{COLOR}' attribute is not written: the file's point "
+                        f"format {view.point_format.id} has no RGB")
+    elif color is not None and color.domain == "POINT":
         rgba = np.empty(n * 4, np.float32)
         color.data.foreach_get("color", rgba)
         scale = float(obj.get(RGB_MAX, 65535))
