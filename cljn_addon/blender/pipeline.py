@@ -127,20 +127,13 @@ def _model_path(context, settings):
     return path
 
 
-def _device(context, settings) -> str:
-    key = settings.device
+def _panel_or_preferences(context, settings, name, to_core) -> str:
+    """The panel's choice of `name` (device, backend), or the preferences' when it is Default."""
+    key = getattr(settings, name)
     if key == "PREFERENCES":
         prefs = get_preferences(context)
-        key = prefs.device if prefs is not None else "AUTO"
-    return DEVICE_TO_CORE[key]
-
-
-def _backend(context, settings) -> str:
-    key = settings.backend
-    if key == "PREFERENCES":
-        prefs = get_preferences(context)
-        key = prefs.backend if prefs is not None else "AUTO"
-    return BACKEND_TO_CORE[key]
+        key = getattr(prefs, name) if prefs is not None else "AUTO"
+    return to_core[key]
 
 
 def options_from_settings(context, settings, normals_only=False) -> DenoiseOptions:
@@ -148,7 +141,8 @@ def options_from_settings(context, settings, normals_only=False) -> DenoiseOptio
     message when they cannot be used (no camera, missing model file...)."""
     return DenoiseOptions(iterations=settings.iterations,
                           patch_radius_fraction=settings.patch_radius / 100.0,
-                          device=_device(context, settings), backend=_backend(context, settings),
+                          device=_panel_or_preferences(context, settings, "device", DEVICE_TO_CORE),
+                          backend=_panel_or_preferences(context, settings, "backend", BACKEND_TO_CORE),
                           normals_only=normals_only,
                           model_path=_model_path(context, settings),
                           **_orientation(context.scene, settings.orientation))
