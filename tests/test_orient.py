@@ -6,7 +6,7 @@ from cljn_addon.core import InputError
 from cljn_addon.core.evaluation.baselines import pca_normals
 from cljn_addon.core.evaluation.metrics import sign_agreement
 from cljn_addon.core.evaluation.shapes import sample_shape
-from cljn_addon.core.orient import orient_normals
+from cljn_addon.core.orient import clear_view_signs, orient_normals, visibility_votes
 
 
 @pytest.mark.parametrize("name", ["sphere", "torus", "box"])
@@ -51,8 +51,42 @@ def test_outward_orientation_of_a_gear_with_sharp_teeth():
     assert sign_agreement(orient_normals(noisy, scrambled, "outward"), truth) >= 0.99
 
 
-@pytest.mark.xfail(strict=True, reason="issue #12: the two sides of a thin spike or wall share a "
-                                       "neighbourhood and are joined with the wrong sign (~50%)")
+def _scrambled_truth(name, noise):
+    noisy, _, truth = sample_shape(name, 30000, noise=noise, seed=8)
+    rng = np.random.default_rng(0)
+    return noisy, truth, truth * np.where(rng.random(len(truth)) < 0.5, -1.0, 1.0)[:, None]
+
+
+def test_visibility_sees_the_outside_of_a_sphere():
+    _, clean, truth = sample_shape("sphere", 20000, seed=3)
+    seen, facing = visibility_votes(clean, truth)
+    assert len(seen) > 0.95 * len(clean)
+    assert np.all(facing > 0)                                 # every view sees the front
+    signs = clear_view_signs(clean, -truth)                   # flipped normals: seen from behind
+    assert np.mean(signs == -1) > 0.95 and not np.any(signs == 1)
+
+
+def test_visibility_leaves_an_open_sheet_alone():
+    """A flat sheet is seen from above and below alike: no clear side, so no vote."""
+    rng = np.random.default_rng(2)
+    pts = np.c_[rng.uniform(-1, 1, (5000, 2)), rng.normal(scale=0.002, size=5000)]
+    assert np.mean(clear_view_signs(pts, np.tile([0, 0, 1.0], (5000, 1))) != 0) < 0.05
+
+
+@pytest.mark.parametrize("name, noise, least", [
+    ("star_prism", 0.0, 0.99), ("star_prism", 0.006, 0.95),   # before visibility: 69.9%, 69.9%
+    ("thin_plate", 0.0, 0.99), ("thin_plate", 0.006, 0.85),   # 100%, 50.5%
+    ("stool", 0.0, 0.99), ("stool", 0.006, 0.94),             # 100%, 34.4%
+])
+def test_visibility_orients_both_sides_of_thin_parts(name, noise, least):
+    """The two faces of a thin tip, plate or seat share k-NN neighbourhoods; steps 1-3 alone
+    joined them with one sign. Exact normals with random signs, on the clean or noisy points."""
+    points, truth, scrambled = _scrambled_truth(name, noise)
+    assert sign_agreement(orient_normals(points, scrambled, "outward"), truth) >= least
+
+
+@pytest.mark.xfail(strict=True, reason="issue #12: at 0.6% noise a thin tip or a 2.5-sigma plate still "
+                                       "has points no view sees clearly (star prism 96.9%, plate 88.0%)")
 @pytest.mark.parametrize("name", ["star_prism", "thin_plate"])
 def test_outward_orientation_of_thin_parts(name):
     noisy, _, truth = sample_shape(name, 30000, noise=0.006, seed=8)

@@ -14,6 +14,11 @@ CAD edges:
 3. Each connected piece is turned outward by its flux (the sum of n . (p - centroid), positive
    for outward normals on a closed surface). An open piece whose flux is ambiguous and which
    is a flat height field (a terrain or street scan) is turned to face up (+z) instead.
+4. Visibility (ours): the cloud is looked at from many directions through a coarse depth
+   buffer; a point clearly seen from one side only faces that side, and the points never
+   clearly seen follow their clearly seen neighbours. This fixes what steps 1-3 cannot: the
+   two faces of a thin tip, spike or seat, whose neighbourhoods mix both sides. Points seen
+   from both sides (an open sheet, a terrain) cast no clear vote and keep steps 1-3's sign.
 
 Viewpoint: each normal is turned to face the given scanner/camera position.
 """
@@ -34,6 +39,13 @@ SMOOTH_COS = 0.9
 AMBIGUOUS_FLUX = 0.3
 HEIGHT_FIELD_SHARE = 0.6
 HEIGHT_FIELD_FLATNESS = 0.3
+# Visibility: orthographic views from directions spread over the sphere, depth-buffer cells of
+# a few point spacings (one noisy surface still hides what lies behind it), and a point counts
+# as seen when it lies within one cell of the front of its cell.
+VIEW_DIRECTIONS = 48
+VIEW_CELL_SPACINGS = 3.0
+VISIBILITY_SAMPLE = 500_000     # most points looked at (a sample of bigger clouds)
+CLEAR_VOTE = 0.5                # |sum n.v| / sum |n.v| over a point's views: clearly one-sided
 
 
 def _reflected_agreement(points, normals, i, j):
@@ -94,6 +106,10 @@ def orient_outward(points: np.ndarray, normals: np.ndarray, k: int = 10) -> np.n
     # Smooth: nearly parallel normals, and both criteria agree on the sign (this keeps the
     # two sides of a thin spike, whose normals are nearly opposite, apart).
     smooth = (np.abs(dot) >= SMOOTH_COS) & (np.sign(dot) == np.sign(reflected))
+    # +1/-1: the side each clearly seen point is seen from, relative to its input normal; 0 if
+    # not clearly seen. An edge whose two ends are seen from opposite sides is not smooth.
+    view_sign = clear_view_signs(points, normals)
+    smooth &= view_sign[i] * view_sign[j] * np.sign(dot) >= 0
 
     # 1. Hoppe propagation inside smooth regions.
     si, sj = i[smooth], j[smooth]
@@ -136,7 +152,71 @@ def orient_outward(points: np.ndarray, normals: np.ndarray, k: int = 10) -> np.n
     decide = np.where(_open_height_field(points, oriented, labels, n_comp, flux, along),
                       np.bincount(labels, weights=oriented[:, 2], minlength=n_comp), flux)
     oriented *= np.where(decide[labels] < 0, -1.0, 1.0)[:, None]
+
+    # 4. Clearly seen points face where they are seen from; each other point takes the side
+    # that agrees with most of its k nearest clearly seen points.
+    clear = np.flatnonzero(view_sign != 0)
+    if len(clear):
+        oriented[clear] = normals[clear] * view_sign[clear, None]
+        rest = np.flatnonzero(view_sign == 0)
+        if len(rest):
+            _, near = cKDTree(points[clear]).query(points[rest], k=min(k, len(clear)), workers=-1)
+            near = clear[near.reshape(len(rest), -1)]
+            pull = np.einsum("mc,mkc->m", oriented[rest], oriented[near])
+            oriented[rest] *= np.where(pull < 0, -1.0, 1.0)[:, None]
     return oriented
+
+
+def _directions(count):
+    """Unit vectors spread evenly over the sphere (Fibonacci lattice)."""
+    i = np.arange(count) + 0.5
+    polar = np.arccos(1.0 - 2.0 * i / count)
+    azimuth = np.pi * (1.0 + 5.0 ** 0.5) * i
+    return np.stack([np.cos(azimuth) * np.sin(polar), np.sin(azimuth) * np.sin(polar), np.cos(polar)], axis=1)
+
+
+def visibility_votes(points, normals, views=VIEW_DIRECTIONS, seed=0):
+    """(indices, facing) for the points in front in at least one view (of a sample of at most
+    VISIBILITY_SAMPLE points): facing = sum of n . v over the directions v a point is seen
+    from, over the sum of |n . v|; +1 when every view sees the front of its normal, -1 when
+    every view sees its back."""
+    idx = np.arange(len(points))
+    if len(points) > VISIBILITY_SAMPLE:
+        idx = np.sort(np.random.default_rng(seed).choice(len(points), VISIBILITY_SAMPLE, replace=False))
+    p = points[idx] - points[idx].mean(axis=0)
+    nrm = np.asarray(normals, np.float64)[idx]
+    gap, _ = cKDTree(p).query(p[:: max(1, len(p) // 2000)], k=2, workers=-1)
+    cell = VIEW_CELL_SPACINGS * max(float(np.median(gap[:, 1])), 1e-12)
+    num = np.zeros(len(p))
+    den = np.zeros(len(p))
+    for v in _directions(views):
+        a = np.cross(v, [1.0, 0.0, 0.0] if abs(v[0]) < 0.9 else [0.0, 1.0, 0.0])
+        a /= np.linalg.norm(a)
+        b = np.cross(v, a)
+        iu = np.floor(p @ a / cell).astype(np.int64)
+        iw = np.floor(p @ b / cell).astype(np.int64)
+        _, pixel = np.unique((iu - iu.min()) * (int(iw.max() - iw.min()) + 1) + (iw - iw.min()),
+                             return_inverse=True)
+        pixel = pixel.ravel()
+        depth = -(p @ v)                   # seen from far along +v: the front has the largest p . v
+        front = np.full(pixel.max() + 1, np.inf)
+        np.minimum.at(front, pixel, depth)
+        seen = depth - front[pixel] <= cell
+        w = nrm[seen] @ v
+        num[seen] += w
+        den[seen] += np.abs(w)
+    has = den > 0
+    return idx[has], num[has] / den[has]
+
+
+def clear_view_signs(points, normals) -> np.ndarray:
+    """(N,) +1 where a point is clearly seen from the side its normal points to, -1 where from
+    the other side, 0 where it is not clearly seen (hidden, or seen from both sides)."""
+    seen, facing = visibility_votes(points, normals)
+    sign = np.zeros(len(points))
+    clear = np.abs(facing) > CLEAR_VOTE
+    sign[seen[clear]] = np.sign(facing[clear])
+    return sign
 
 
 def _open_height_field(points, normals, labels, n_comp, flux, along) -> np.ndarray:
