@@ -64,12 +64,29 @@ def test_thin_plate_faces_stay_apart_and_come_out_less_noisy_at_low_noise(shippe
     assert np.mean(res.points[top, 2]) > 0.6 * np.mean(clean[top, 2])
 
 
-@pytest.mark.xfail(strict=True, reason="issue #12: at 0.6% noise the plate is only ~2.5 sigma thick "
-                                       "and the network still pulls its faces together")
 def test_thin_plate_is_never_worse_than_the_input_at_0_6_percent(shipped):
-    noisy, clean, _, dist = _plate(0.006)
+    """~2.5 sigma thick: found thin-walled, own-sheet patches and 2.5-sigma refinement keep the
+    faces apart (before: Chamfer 11.1 against 6.5 for the input, faces pulled together)."""
+    noisy, clean, truth, dist = _plate(0.006)
     res = denoise(noisy, shipped, iterations="auto")
-    assert chamfer(res.points, clean) < chamfer(noisy, clean)
+    assert res.thin_walled
+    assert chamfer(res.points, clean) < 0.9 * chamfer(noisy, clean)
+    assert dist.distance(res.points).mean() < dist.distance(noisy).mean()
+    top = truth[:, 2] > 0.9
+    # The faces come out partly drawn together (top face at 0.53 of its height; a full
+    # collapse onto the midplane gives ~0), but apart.
+    assert np.mean(res.points[top, 2]) > 0.4 * np.mean(clean[top, 2])
+
+
+def test_stool_seat_and_legs_come_out_cleaner_at_0_6_percent(shipped):
+    """Thin seat, thin legs (before: Chamfer 19.3 against 6.9 for the input)."""
+    from cljn_addon.core.evaluation.metrics import MeshDistance
+    from cljn_addon.core.evaluation.shapes import shape_mesh
+
+    noisy, clean, _ = sample_shape("stool", 20000, noise=0.006, seed=1)
+    res = denoise(noisy, shipped, iterations="auto")
+    dist = MeshDistance(*shape_mesh("stool"))
+    assert chamfer(res.points, clean) < 0.8 * chamfer(noisy, clean)
     assert dist.distance(res.points).mean() < dist.distance(noisy).mean()
 
 

@@ -267,6 +267,9 @@ class CloudCommand:
         bound = float(getattr(res, "displacement_bound", float("inf")))
         noise = (f"estimated noise {sigma:.4g} (no point moved more than {bound:.4g}), "
                  if math.isfinite(sigma) else "")
+        thin = bool(getattr(res, "thin_walled", False))
+        if thin:
+            noise += "thin-walled (own-side patches), "
         ran_on = getattr(res, "ran_on", "")
         where = f"on {ran_on}, " if ran_on else ""
         line = (f"{label}: {n} points, {outliers} outliers flagged, "
@@ -277,7 +280,7 @@ class CloudCommand:
         return {"points": n, "outliers": outliers, "mean_displacement": disp,
                 "noise_sigma": sigma if math.isfinite(sigma) else None,
                 "displacement_bound": bound if math.isfinite(bound) else None,
-                "seconds": round(seconds, 3), "ran_on": ran_on}
+                "thin_walled": thin, "seconds": round(seconds, 3), "ran_on": ran_on}
 
     def _keep_preview(self, job, label, before, res):
         if self.args.preview:

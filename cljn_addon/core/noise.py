@@ -7,10 +7,13 @@ under-clean but never wreck the scan.
 """
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 from scipy.spatial import cKDTree
 
 from .patches import PatchSource, make_patches
+from .sheets import fit_two_sheets
 
 NOISE_SAMPLE = 4_000           # patches the estimate is taken over (random centres)
 NOISE_PATCH_POINTS = 256
@@ -22,6 +25,8 @@ FIT_BALL_POINTS = 100
 SHEET_SIGMAS = 2.5             # points within this many sigma of the fit are the centre's sheet
 TRUNCATED_MAD = 0.9766         # median |x| of a Gaussian cut at 2.5 sigma, over 0.6745 sigma
 QUANTUM_SAMPLE = 20_000        # coordinates per axis looked at to find a storage grid
+TWO_SHEET_KURTOSIS = 2.6       # flat-topped one-sheet residuals: two sides, not a crease
+THIN_WALLED_SHARE = 0.35       # share of balls across two sides that makes a thin-walled object
 
 
 def coordinate_quantum(points, sample=QUANTUM_SAMPLE, seed=0):
@@ -49,15 +54,27 @@ def coordinate_quantum(points, sample=QUANTUM_SAMPLE, seed=0):
     return np.array(steps) if tied else None
 
 
+class NoiseEstimate(NamedTuple):
+    sigma: float          # scanner noise, in the cloud's units
+    two_sheet_share: float  # share of the balls that straddle both sides of a thin part
+
+
 def estimate_noise_sigma(points, radius, sample=NOISE_SAMPLE, seed=0) -> float:
-    """Robust sigma of the scanner noise, in the cloud's units.
+    """Robust sigma of the scanner noise, in the cloud's units (see `estimate_noise`)."""
+    return estimate_noise(points, radius, sample, seed).sigma
+
+
+def estimate_noise(points, radius, sample=NOISE_SAMPLE, seed=0) -> NoiseEstimate:
+    """Robust sigma of the scanner noise, and how thin-walled the cloud is.
 
     In balls of the patch radius around random points, a quadric height field is fitted in
     each ball's PCA frame (so curvature does not count as noise), robustly: starting from the
     half of the ball nearest the centre's height and refitting on the points within 2.5
     sigma, so that the far side of a thin part (a plate, a wall, a car in front of a wall)
     does not count as noise either. Sigma is the median over balls of the scaled median
-    absolute residual.
+    absolute residual. Where the two sides of a part are only 2-3 sigma apart that fit cannot
+    tell them apart; each ball is also fitted with two parallel sheets (`sheets.fit_two_sheets`),
+    and on a thin-walled object (many such balls) their shared sigma is used in those balls.
 
     Coordinates stored on a coarse grid (a LAS file at 1 cm) tie so often that the median
     residual is 0: they are dithered by a uniform step of the grid first and the dither's
@@ -65,17 +82,18 @@ def estimate_noise_sigma(points, radius, sample=NOISE_SAMPLE, seed=0) -> float:
     """
     pts = np.asarray(points, np.float64)
     if len(pts) < 10 or not radius > 0:
-        return 0.0
+        return NoiseEstimate(0.0, 0.0)
     rng = np.random.default_rng(seed)
     quantum = coordinate_quantum(pts, seed=seed)
     if quantum is not None:
         pts = pts + rng.uniform(-0.5, 0.5, pts.shape) * quantum
-        dithered = _estimate(pts, radius, sample, rng)
-        return float(np.sqrt(max(dithered ** 2 - np.mean(quantum ** 2) / 12.0, 0.0)))
-    return _estimate(pts, radius, sample, rng)
+        dithered, share = _estimate(pts, radius, sample, rng)
+        return NoiseEstimate(float(np.sqrt(max(dithered ** 2 - np.mean(quantum ** 2) / 12.0, 0.0))), share)
+    return NoiseEstimate(*_estimate(pts, radius, sample, rng))
 
 
-def _estimate(pts, radius, sample, rng) -> float:
+def _estimate(pts, radius, sample, rng):
+    """(sigma, share of two-sheet balls)."""
     centres = pts[rng.choice(len(pts), size=min(sample, len(pts)), replace=False)]
     # A sparse cloud gets wider balls: a robust quadric fit needs ~100 points to be unbiased.
     k = min(FIT_BALL_POINTS, len(pts) - 1)
@@ -87,7 +105,7 @@ def _estimate(pts, radius, sample, rng) -> float:
     local = local[dense].astype(np.float64)
     distinct = np.minimum(counts[dense], NOISE_PATCH_POINTS)     # the rest is padding
     if len(local) == 0:
-        return 0.0
+        return 0.0, 0.0
     x, y, z = local[..., 0], local[..., 1], local[..., 2]
     design = np.stack([x * x, x * y, y * y, x, y, np.ones_like(x)], axis=-1)       # (M, n, 6)
     # Start from the half of the ball nearest the centre's own height, so that where a thin
@@ -104,7 +122,16 @@ def _estimate(pts, radius, sample, rng) -> float:
     # Six fitted coefficients take six degrees of freedom from the distinct kept points.
     used = distinct * keep.mean(axis=1)
     scale = scale[:, 0] * np.sqrt(used / np.maximum(used - 6.0, 1.0))
-    return float(np.median(scale) * radius)
+    # A ball across a part ~2-3 sigma thick: the robust fit above cannot tell the two sides
+    # apart and reads the part's thickness as noise; the two-sheet mixture can. Only where
+    # such balls are common (a thin-walled object): at high noise a few balls of any shape
+    # split their noise in two and would pull the estimate down.
+    fit = fit_two_sheets(local)
+    two = fit["two"] & (fit["kurtosis"] < TWO_SHEET_KURTOSIS)
+    share = float(two.mean())
+    if share >= THIN_WALLED_SHARE:
+        scale[two] = np.minimum(scale[two], fit["sigma"][two])
+    return float(np.median(scale) * radius), share
 
 
 def clamp_displacement(moved, original, bound):

@@ -140,8 +140,18 @@ def from_frame(vectors: np.ndarray, frames: np.ndarray) -> np.ndarray:
     return np.einsum("mji,mj->mi", frames, vectors)
 
 
-def make_patches(source: PatchSource, centres: np.ndarray, rng: np.random.Generator):
-    """Patches around `centres` in their PCA frames: (patches (M,n,3) float32, frames, counts)."""
+def make_patches(source: PatchSource, centres: np.ndarray, rng: np.random.Generator, own_sheet=False):
+    """Patches around `centres` in their PCA frames: (patches (M,n,3) float32, frames, counts).
+
+    own_sheet (ours): where a patch holds both sides of a thin part, the other side's points
+    are replaced by points of the centre's own side (`sheets.own_sheet_patches`) and the
+    frame is taken again from what is left."""
     local, counts = source.gather(centres, rng)
     frames = pca_frames(local)
+    if own_sheet:
+        from .sheets import own_sheet_patches
+
+        local, fit = own_sheet_patches(local, to_frame(local, frames), rng)
+        if fit["two"].any():
+            frames[fit["two"]] = pca_frames(local[fit["two"]])
     return to_frame(local, frames).astype(np.float32), frames, counts
