@@ -18,7 +18,8 @@ CAD edges:
    buffer; a point clearly seen from one side only faces that side, and the points never
    clearly seen follow their clearly seen neighbours. This fixes what steps 1-3 cannot: the
    two faces of a thin tip, spike or seat, whose neighbourhoods mix both sides. Points seen
-   from both sides (an open sheet, a terrain) cast no clear vote and keep steps 1-3's sign.
+   from both sides (an open sheet, a terrain) cast no clear vote, and a cloud with few clear
+   votes (an open scan) is left to steps 1-3 entirely.
 
 Viewpoint: each normal is turned to face the given scanner/camera position.
 """
@@ -46,6 +47,9 @@ VIEW_DIRECTIONS = 48
 VIEW_CELL_SPACINGS = 3.0
 VISIBILITY_SAMPLE = 500_000     # most points looked at (a sample of bigger clouds)
 CLEAR_VOTE = 0.5                # |sum n.v| / sum |n.v| over a point's views: clearly one-sided
+# The vote is used only when at least this share of the points is clearly seen from one side:
+# closed objects 0.76-0.96 (thin ones included), open scans 0-0.16.
+SEEN_CLOSED_SHARE = 0.5
 
 
 def _reflected_agreement(points, normals, i, j):
@@ -109,6 +113,10 @@ def orient_outward(points: np.ndarray, normals: np.ndarray, k: int = 10) -> np.n
     # +1/-1: the side each clearly seen point is seen from, relative to its input normal; 0 if
     # not clearly seen. An edge whose two ends are seen from opposite sides is not smooth.
     view_sign = clear_view_signs(points, normals)
+    if np.mean(view_sign != 0) < SEEN_CLOSED_SHARE:
+        # An open scan (one sweep of a range scanner, a terrain, vegetation): most points are
+        # seen from both sides or not at all, and the few clear votes would scramble it.
+        view_sign[:] = 0
     smooth &= view_sign[i] * view_sign[j] * np.sign(dot) >= 0
 
     # 1. Hoppe propagation inside smooth regions.
