@@ -91,3 +91,14 @@ def test_solids_with_creases_are_not_thin_walled(name, noise):
     noise estimate and its denoising are what they were."""
     noisy, _, _ = sample_shape(name, 20000, noise=noise, seed=1)
     assert estimate_noise(noisy, 0.05).two_sheet_share < THIN_WALLED_SHARE
+
+
+def test_thin_walled_handling_is_reported_and_can_be_turned_off():
+    noisy, _, _ = sample_shape("thin_plate", 8000, noise=0.006, seed=1)
+    model = build_model("tiny").eval()
+    auto = denoise(noisy, model, iterations="auto")
+    assert auto.thin_walled and auto.iterations == 1
+    off = denoise(noisy, model, iterations="auto", own_sheet=False)
+    assert not off.thin_walled
+    solid, _, _ = sample_shape("box", 8000, noise=0.006, seed=1)
+    assert not denoise(solid, model, iterations="auto").thin_walled

@@ -168,8 +168,8 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
     vector; sliding along the surface removes no noise and clumps points). own_sheet (ours):
     'auto' (default) handles a thin-walled object (`noise.estimate_noise`: many balls straddle
     both sides of a thin part) with own-sheet patches (`patches.make_patches`) and refinement
-    that keeps to 2.5 rather than 4 sigma of each point's tangent plane; True/False force the
-    patches on or off.
+    that keeps to 2.5 rather than 4 sigma of each point's tangent plane (and one pass with
+    iterations='auto'); False turns that off, True forces own-sheet patches on any cloud.
     """
     t0 = time.time()
     given = validate_points(points)
@@ -217,7 +217,7 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
     if move_points and (bound is None or auto_iterations or own_sheet == "auto"):
         report(0.0, "estimating the noise level")
         sigma, two_sheet_share = estimate_noise(current, radius0, seed=seed)
-        thin_walled = two_sheet_share >= THIN_WALLED_SHARE
+        thin_walled = two_sheet_share >= THIN_WALLED_SHARE and own_sheet is not False
     if own_sheet == "auto":
         own_sheet = thin_walled
     if bound is None:
@@ -280,4 +280,4 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
     report(1.0, "done")
     return DenoiseResult(points=out_points, normals=all_normals.astype(np.float32), outliers=outliers,
                          displacement=displacement, seconds=time.time() - t0, iterations=iterations,
-                         noise_sigma=sigma, displacement_bound=bound, ran_on=ran_on, thin_walled=bool(own_sheet))
+                         noise_sigma=sigma, displacement_bound=bound, ran_on=ran_on, thin_walled=thin_walled)
