@@ -122,7 +122,6 @@ REFINE_SHEET_SIGMAS = 4.0
 # On a thin-walled object (walls 2-3 sigma thick) 4 sigma still reaches the far side; its
 # surfaces are mostly flat, so curvature does not read as offset there.
 THIN_REFINE_SHEET_SIGMAS = 2.5
-FINAL_NORMALS_PASS = True   # thin-walled objects: normals from one more pass (see _run)
 AUTO_SIGMA_PER_ITERATION = 0.075   # noise sigma / patch radius handled per iteration
 MAX_AUTO_ITERATIONS = 4
 
@@ -262,7 +261,7 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
         if cancel is not None and cancel.is_set():
             raise Cancelled("cancelled")
         current = clamp_displacement(filtered, original[inliers], bound)
-    if move_points and thin_walled and FINAL_NORMALS_PASS:
+    if move_points and thin_walled:
         # One moving pass leaves the normals of the noisy input; a pass on the cleaned points
         # gives better ones (l_bracket at 0.6%: MSAE 0.166 -> 0.139; stool 0.420 -> 0.368).
         new_normals = network_pass(predict, chunk, current, radius, rng, points_per_patch, None, cancel, own_sheet)[1]

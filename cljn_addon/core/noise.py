@@ -13,7 +13,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .patches import PatchSource, make_patches
-from .sheets import fit_two_sheets
+from .sheets import fit_two_sheets, quadric_design
 
 NOISE_SAMPLE = 4_000           # patches the estimate is taken over (random centres)
 NOISE_PATCH_POINTS = 256
@@ -106,8 +106,8 @@ def _estimate(pts, radius, sample, rng):
     distinct = np.minimum(counts[dense], NOISE_PATCH_POINTS)     # the rest is padding
     if len(local) == 0:
         return 0.0, 0.0
-    x, y, z = local[..., 0], local[..., 1], local[..., 2]
-    design = np.stack([x * x, x * y, y * y, x, y, np.ones_like(x)], axis=-1)       # (M, n, 6)
+    z = local[..., 2]
+    design = quadric_design(local)
     # Start from the half of the ball nearest the centre's own height, so that where a thin
     # part puts its other side in the ball the fit locks onto the centre's side.
     keep = np.abs(z) <= np.median(np.abs(z), axis=1, keepdims=True)

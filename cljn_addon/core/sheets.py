@@ -22,7 +22,8 @@ MIN_TOTAL_GAIN = 6.0       # log-likelihood gain of the mixture over one quadric
 MAX_FOOTPRINT_SHIFT = 0.5  # centroids of the two sheets apart by at most this x their xy spread
 
 
-def _design(local):
+def quadric_design(local):
+    """(M, n, 6) design of the height field z = a x^2 + b xy + c y^2 + d x + e y + f."""
     x, y = local[..., 0], local[..., 1]
     return np.stack([x * x, x * y, y * y, x, y, np.ones_like(x)], axis=-1)
 
@@ -32,15 +33,13 @@ def fit_two_sheets(local, rounds=EM_ROUNDS):
 
     local: (M, n, 3) patch points, the centre at the origin, z along the rough normal.
     Returns a dict of (M,) arrays: two (bool: two sheets found), sigma (the mixture's noise, in
-    patch units), gain (log-likelihood gain per point over one quadric), gap (|h| / sigma),
-    share (the smaller sheet's share), footprint (how far the sheets lie side by side rather
-    than over each other), kurtosis (of the one-quadric residuals), centre_upper (the centre
-    lies nearer the sheet q + h); and (M, n) `upper`, each point's probability of lying on q + h.
+    patch units), kurtosis (of the one-quadric residuals), centre_upper (the centre lies
+    nearer the sheet q + h); and (M, n) `upper`, each point's probability of lying on q + h.
     """
     x = np.asarray(local, np.float64)
     m, n, _ = x.shape
     z = x[..., 2]
-    design = _design(x)
+    design = quadric_design(x)
     gram = np.einsum("mni,mnj->mij", design, design)
     rhs_q = np.einsum("mni,mn->mi", design, z)
     coef = np.linalg.solve(gram + 1e-9 * np.eye(6), rhs_q[..., None])[..., 0]
@@ -98,8 +97,7 @@ def fit_two_sheets(local, rounds=EM_ROUNDS):
     # The centre (origin) belongs to the sheet whose height at (0, 0) is nearer to 0.
     q0 = coef2[:, 5]
     centre_upper = np.abs(q0 + h[:, 0]) < np.abs(q0)
-    return dict(two=two, sigma=sigma, gain=gain, gap=gap, share=small, footprint=footprint,
-                kurtosis=kurtosis, centre_upper=centre_upper, upper=upper)
+    return dict(two=two, sigma=sigma, kurtosis=kurtosis, centre_upper=centre_upper, upper=upper)
 
 
 def own_sheet_patches(local, framed, rng):
