@@ -152,7 +152,7 @@ def test_panel_menu_and_preferences_draw(bx):
         bx.settings.model_source = source
         log = draw(panel_cls.draw)
         props = {name for kind, name in log if kind == "prop"}
-        assert {"model_source", "iterations", "patch_radius", "orientation", "device", "backend",
+        assert {"model_source", "auto_iterations", "iterations", "patch_radius", "orientation", "device", "backend",
                 "use_mesh_vertices"} <= props
         assert ("model_path" in props) == (source == "FILE")
         ops = [name for kind, name in log if kind == "operator"]
@@ -199,6 +199,7 @@ def test_without_torch_denoise_runs_on_numpy_and_training_says_what_to_press(bx)
     obj = bx.make_cloud(noisy)
     bx.select(obj)
     bx.settings.model_source = "DEFAULT"
+    bx.settings.auto_iterations = False
     bx.settings.iterations = 1
     assert bpy.ops.cljn.denoise_points() == {"FINISHED"}
     metrics = __import__(PACKAGE + ".core.evaluation.metrics", fromlist=["metrics"])

@@ -84,6 +84,7 @@ obj = bpy.data.objects.new("Scan", mesh)
 bpy.context.scene.collection.objects.link(obj)
 obj.select_set(True)
 bpy.context.view_layer.objects.active = obj
+bpy.context.scene.cljn_denoise.auto_iterations = False
 bpy.context.scene.cljn_denoise.iterations = 2
 try:
     print("RESULT", bpy.ops.cljn.denoise_points())

@@ -83,6 +83,7 @@ def test_import_denoise_export_keeps_fields_and_georeferencing(bx):
 
         # Denoise Points, then export: moved positions in true coordinates, normals, every field.
         bx.use_model_file()
+        bx.settings.auto_iterations = False
         bx.settings.iterations = 1
         bx.select(obj)
         assert bpy.ops.cljn.denoise_points() == {"FINISHED"}

@@ -39,6 +39,7 @@ def test_denoise_points_with_the_shipped_model(bx):
     before_local = bx.local_points(obj)
     world_in = bx.world_points(obj)
     bx.settings.model_source = "DEFAULT"
+    bx.settings.auto_iterations = False
     bx.settings.iterations = 4
     assert bpy.ops.cljn.denoise_points() == {"FINISHED"}
 
@@ -76,6 +77,7 @@ def test_denoise_writes_every_attribute_in_object_space(bx):
     obj = bx.make_cloud(noisy, "Box", kind=bx.point_cloud_kind, matrix=MATRIX)
     bx.select(obj)
     bx.use_model_file()
+    bx.settings.auto_iterations = False
     bx.settings.iterations = 1
     before = bx.local_points(obj)
     world_before = bx.world_points(obj)
@@ -213,6 +215,7 @@ def test_bad_selections_report_and_change_nothing(bx):
     unchanged()
 
     # Mixed selection: the cloud is processed, the cube is skipped and stays as it was.
+    bx.settings.auto_iterations = False
     bx.settings.iterations = 1
     assert bpy.ops.cljn.denoise_points() == {"FINISHED"}
     assert snapshot(cube) == state["Ico"]
@@ -244,6 +247,7 @@ def test_ply_export_carries_our_normals_and_ply_import_then_denoise(bx):
     shapes = __import__(bx.package + ".core.evaluation.shapes", fromlist=["shapes"])
     bx.clear_scene()
     bx.use_model_file()
+    bx.settings.auto_iterations = False
     bx.settings.iterations = 1
     noisy, _, normals_true = shapes.sample_shape("sphere", 1200, noise=0.005, seed=4)
     obj = bx.make_cloud(noisy, "Sphere")
@@ -369,6 +373,7 @@ def test_train_model_makes_the_result_the_active_model(bx):
     assert model.config.preset == "tiny"
     # The trained model is used by the next run.
     bx.select(cloud)
+    bx.settings.auto_iterations = False
     bx.settings.iterations = 1
     assert bpy.ops.cljn.denoise_points() == {"FINISHED"}
 
@@ -442,6 +447,7 @@ def test_modal_run_updates_progress_and_esc_cancels(bx):
     before = bx.local_points(obj)
     ctx = context()
     op = Denoise()
+    bx.settings.auto_iterations = False
     bx.settings.iterations = 2
     assert op.invoke(ctx, None) == {"RUNNING_MODAL"}
     assert ops._active_job is not None
@@ -457,6 +463,7 @@ def test_modal_run_updates_progress_and_esc_cancels(bx):
 
     # Esc: cancelled, and the object is exactly as it was.
     snapshot = {n: bx.attribute(obj, n).tobytes() for n in bx.attribute_names(obj) if not n.startswith(".")}
+    bx.settings.auto_iterations = False
     bx.settings.iterations = 50
     ctx, op = context(), Denoise()
     assert op.invoke(ctx, None) == {"RUNNING_MODAL"}
@@ -488,6 +495,7 @@ def test_operator_and_command_line_give_identical_results(bx):
     obj = bx.make_cloud(local, "Scan", matrix=m)
     bx.select(obj)
     bx.use_model_file("tiny")
+    bx.settings.auto_iterations = False
     bx.settings.iterations = 2
     bx.settings.patch_radius = 5.0
     bx.settings.orientation = "OUTWARD"

@@ -106,3 +106,21 @@ def test_all_points_isolated_is_refused(tiny):
     pts = np.r_[pts, [[0, 0, 0]]]
     with pytest.raises(InputError, match="enough neighbours"):
         denoise(pts, tiny, patch_radius=1.0)
+
+
+def test_auto_iterations_report_how_many_ran(tiny):
+    noisy, _, _ = sample_shape("sphere", 3000, noise=0.01, seed=1)
+    res = denoise(noisy, tiny, iterations="auto", device="cpu")
+    assert 1 <= res.iterations <= 4
+    again = denoise(noisy, tiny, iterations=res.iterations, device="cpu")
+    # The same passes as a fixed run with as many iterations.
+    assert np.array_equal(res.points, again.points)
+
+
+def test_on_iteration_sees_every_pass_and_the_last_is_the_result(tiny):
+    noisy, _, _ = sample_shape("sphere", 3000, noise=0.01, seed=1)
+    seen = []
+    res = denoise(noisy, tiny, iterations=3, device="cpu", on_iteration=lambda i, pts: seen.append((i, pts)))
+    assert [i for i, _ in seen] == [1, 2, 3]
+    assert np.array_equal(seen[-1][1], res.points)
+    assert not np.array_equal(seen[0][1], seen[1][1])

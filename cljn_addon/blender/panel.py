@@ -44,7 +44,10 @@ class VIEW3D_PT_cljn_denoise(bpy.types.Panel):
         else:
             text, icon = _default_model_text(context)
             col.label(text=text, icon=icon)
-        col.prop(settings, "iterations")
+        col.prop(settings, "auto_iterations")
+        row = col.row()
+        row.enabled = not settings.auto_iterations
+        row.prop(settings, "iterations")
         col.prop(settings, "patch_radius")
         col.prop(settings, "orientation")
         col.prop(settings, "device")

@@ -139,7 +139,7 @@ def _panel_or_preferences(context, settings, name, to_core) -> str:
 def options_from_settings(context, settings, normals_only=False) -> DenoiseOptions:
     """The panel's settings (scene.cljn_denoise) as engine options; InputError with a plain
     message when they cannot be used (no camera, missing model file...)."""
-    return DenoiseOptions(iterations=settings.iterations,
+    return DenoiseOptions(iterations="auto" if settings.auto_iterations else settings.iterations,
                           patch_radius_fraction=settings.patch_radius / 100.0,
                           device=_panel_or_preferences(context, settings, "device", DEVICE_TO_CORE),
                           backend=_panel_or_preferences(context, settings, "backend", BACKEND_TO_CORE),

@@ -37,6 +37,10 @@ class CLJN_PG_settings(bpy.types.PropertyGroup):
     model_path: StringProperty(
         name="Model File", subtype="FILE_PATH",
         description="Network weights (.safetensors) with their .json config beside them")
+    auto_iterations: BoolProperty(
+        name="Auto Iterations", default=True,
+        description="Choose 1-4 filtering passes from the cloud's estimated noise (fewer at low noise "
+                    "keep fine detail and thin parts); untick to set Iterations yourself")
     iterations: IntProperty(
         name="Iterations", default=4, min=1, max=20, soft_max=10,
         description="Filtering passes; more removes more noise (4 is the paper's default, 10 for heavy noise)")

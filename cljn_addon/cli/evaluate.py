@@ -19,7 +19,8 @@ def main(argv=None):
     parser.add_argument("--points", type=int, default=50_000, help="points sampled per shape")
     parser.add_argument("--levels", type=float, nargs="+", default=[x * 100 for x in TEST_NOISE_LEVELS],
                         help="noise sigma in percent of the bbox diagonal")
-    parser.add_argument("--iterations", default="4", help="a whole number, or auto (from the estimated noise)")
+    parser.add_argument("--iterations", default="auto",
+                        help="a whole number, or auto (default: 1-4 from the estimated noise)")
     parser.add_argument("--synthetic", nargs="*", default=None, metavar="SHAPE",
                         help="evaluate built-in shapes instead of a folder")
     parser.add_argument("--no-thin", action="store_true",

@@ -57,7 +57,7 @@ def _positive_int(text):
 
 
 def _iterations(text):
-    """A whole number of iterations, or 'auto' (chosen from the estimated noise)."""
+    """A whole number of iterations, or 'auto' (1-4, from the estimated noise)."""
     if str(text).strip().lower() == "auto":
         return "auto"
     return _positive_int(text)
@@ -116,10 +116,10 @@ def _add_cloud_options(p: argparse.ArgumentParser, normals_only: bool):
     eng = p.add_argument_group("engine (as in the panel)")
     eng.add_argument("--model", metavar="FILE.safetensors",
                      help="weights file with its .json beside it (default: the shipped model)")
-    eng.add_argument("--iterations", type=_iterations, default=4,
+    eng.add_argument("--iterations", type=_iterations, default="auto",
                      help=("accepted for symmetry with denoise: normals take one network pass"
                            if normals_only else
-                           "filtering iterations, or auto to choose 1-4 from the estimated noise (default 4)"))
+                           "filtering iterations, or auto (default): 1-4 chosen from the estimated noise"))
     eng.add_argument("--patch-radius", type=_percent, metavar="PERCENT",
                      help="patch radius in percent of the bounding-box diagonal (default 5)")
     if not normals_only:

@@ -44,7 +44,8 @@ def resolve_backend(name: str = "auto") -> str:
 
 @dataclass(frozen=True)
 class DenoiseOptions:
-    """iterations: filtering passes (ignored when normals_only). patch_radius_fraction: of the
+    """iterations: filtering passes, or "auto" (default: 1-4 from the estimated noise, see
+    core.infer.iterations_for_noise); ignored when normals_only. patch_radius_fraction: of the
     bbox diagonal, None for the model's own (5%). orientation: one of config.ORIENTATIONS;
     'viewpoint' needs viewpoint=(x, y, z) in world space. model_path: None for the shipped model.
     normals_only: estimate normals, positions untouched (core.estimate_normals).
@@ -52,7 +53,7 @@ class DenoiseOptions:
     max_displacement: cap on how far any point moves (cloud units); None for 3 x the noise
     sigma estimated from the cloud."""
 
-    iterations: int | str = 4          # or "auto"
+    iterations: int | str = "auto"     # or a whole number
     patch_radius_fraction: float | None = None
     orientation: str = "outward"
     viewpoint: tuple | None = None

@@ -28,7 +28,7 @@ class DemoResult:
     numbers: dict              # the table's values
 
 
-def run_demo(model, shape="stepped_block", points=30_000, noise_percent=1.0, iterations=4,
+def run_demo(model, shape="stepped_block", points=30_000, noise_percent=1.0, iterations="auto",
              progress=None) -> DemoResult:
     noisy, clean, truth = sample_shape(shape, points, noise=noise_percent / 100, seed=1)
     res = denoise(noisy, model, iterations=iterations, orientation="outward", progress=progress)
