@@ -22,6 +22,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from cljn_addon import core  # noqa: E402
+from cljn_addon.cli.paths import DEFAULT_VALIDATION_DIR  # noqa: E402
 from cljn_addon.core.evaluation.evaluate import prepare_shape  # noqa: E402
 from cljn_addon.core.evaluation.metrics import chamfer  # noqa: E402
 from cljn_addon.core.evaluation.shapes import shape_mesh  # noqa: E402
@@ -29,11 +30,9 @@ from cljn_addon.core.formats.meshes import read_mesh  # noqa: E402
 from cljn_addon.core.infer import iterations_for_noise  # noqa: E402
 from cljn_addon.core.patches import bbox_diagonal  # noqa: E402
 
-VALIDATION = Path(__file__).resolve().parents[2] / "shared" / "data" / "meshes" / "validation"
-
 
 def mesh_for(name):
-    path = VALIDATION / f"{name}.off"
+    path = DEFAULT_VALIDATION_DIR / f"{name}.off"
     return read_mesh(path) if path.exists() else shape_mesh(name)
 
 
@@ -56,7 +55,7 @@ def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--shapes", nargs="+", default=["boxunion", "column_head", "cylinder", "icosahedron",
                                                         "star_smooth", "thin_plate", "l_bracket", "stool"])
-    parser.add_argument("--levels", nargs="+", type=float, default=[0.6, 1.1, 2.0], help="sigma, % of the diagonal")
+    parser.add_argument("--levels", nargs="+", type=float, default=[0.6, 1.1, 2.0], help="sigma, %% of the diagonal")
     parser.add_argument("--points", type=int, default=20000)
     args = parser.parse_args(argv)
     model = core.load_model()

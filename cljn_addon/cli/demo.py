@@ -7,7 +7,7 @@ import argparse
 from ..core.errors import ModelMismatchError, ModelNotFoundError
 from .console import err, out
 from .exitcodes import EXIT_OK, EXIT_USAGE
-from .parser import _iterations
+from .parser import iterations_arg
 from .progress import Progress
 
 
@@ -21,7 +21,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--shape", default="stepped_block", help="built-in shape (stepped_block, box, star, torus, ...)")
     parser.add_argument("--points", type=int, default=30_000)
     parser.add_argument("--noise", type=float, default=1.0, help="sigma, percent of the bbox diagonal")
-    parser.add_argument("--iterations", type=_iterations, default="auto",
+    parser.add_argument("--iterations", type=iterations_arg, default="auto",
                         help="filtering iterations, or auto (default; see denoise --help)")
     parser.add_argument("--model", default=None, help="weights file (default: the shipped model)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar or lines")

@@ -8,6 +8,7 @@ from pathlib import Path
 
 from ..core.config import TEST_NOISE_LEVELS
 from ..core.errors import InputError, ModelMismatchError, ModelNotFoundError
+from .parser import iterations_arg
 from .paths import DEFAULT_VALIDATION_DIR
 
 
@@ -19,7 +20,7 @@ def main(argv=None):
     parser.add_argument("--points", type=int, default=50_000, help="points sampled per shape")
     parser.add_argument("--levels", type=float, nargs="+", default=[x * 100 for x in TEST_NOISE_LEVELS],
                         help="noise sigma in percent of the bbox diagonal")
-    parser.add_argument("--iterations", default="auto",
+    parser.add_argument("--iterations", type=iterations_arg, default="auto",
                         help="a whole number, or auto (default: 1-4 from the estimated noise)")
     parser.add_argument("--synthetic", nargs="*", default=None, metavar="SHAPE",
                         help="evaluate built-in shapes instead of a folder")
@@ -30,11 +31,6 @@ def main(argv=None):
     parser.add_argument("--json", default=None, help="also write the full result as JSON")
     parser.add_argument("--threads", type=int, default=None)
     args = parser.parse_args(argv)
-    if args.iterations != "auto":
-        try:
-            args.iterations = int(args.iterations)
-        except ValueError:
-            parser.error(f"--iterations: expected a whole number or auto, got {args.iterations!r}")
     if args.threads:
         import torch
         torch.set_num_threads(args.threads)

@@ -56,7 +56,7 @@ def _positive_int(text):
     return value
 
 
-def _iterations(text):
+def iterations_arg(text):
     """A whole number of iterations, or 'auto' (1-4, from the estimated noise)."""
     if str(text).strip().lower() == "auto":
         return "auto"
@@ -116,7 +116,7 @@ def _add_cloud_options(p: argparse.ArgumentParser, normals_only: bool):
     eng = p.add_argument_group("engine (as in the panel)")
     eng.add_argument("--model", metavar="FILE.safetensors",
                      help="weights file with its .json beside it (default: the shipped model)")
-    eng.add_argument("--iterations", type=_iterations, default="auto",
+    eng.add_argument("--iterations", type=iterations_arg, default="auto",
                      help=("accepted for symmetry with denoise: normals take one network pass"
                            if normals_only else
                            "filtering iterations, or auto (default): 1-4 chosen from the estimated noise"))
