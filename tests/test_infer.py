@@ -117,6 +117,23 @@ def test_auto_iterations_report_how_many_ran(tiny):
     assert np.array_equal(res.points, again.points)
 
 
+def test_auto_iterations_stop_when_the_cloud_has_moved_by_the_noise(tiny, monkeypatch):
+    """The discrepancy stop: the pass whose RMS move from the input passes STOP_MOVE_SIGMAS x
+    the surface noise estimate is dropped, and what is returned is a fixed run of the passes kept."""
+    from cljn_addon.core import infer
+
+    noisy, _, _ = sample_shape("sphere", 3000, noise=0.02, seed=1)
+    monkeypatch.setattr(infer, "STOP_MOVE_SIGMAS", float("inf"))
+    unstopped = denoise(noisy, tiny, iterations="auto", device="cpu")
+    assert unstopped.iterations > 1 and not unstopped.stopped_early
+    monkeypatch.setattr(infer, "STOP_MOVE_SIGMAS", 1e-9)       # any second pass moves too far
+    stopped = denoise(noisy, tiny, iterations="auto", device="cpu")
+    assert stopped.iterations == 1 and stopped.stopped_early
+    assert np.array_equal(stopped.points, denoise(noisy, tiny, iterations=1, device="cpu").points)
+    # A fixed count is never cut short.
+    assert denoise(noisy, tiny, iterations=2, device="cpu").iterations == 2
+
+
 def test_on_iteration_sees_every_pass_and_the_last_is_the_result(tiny):
     noisy, _, _ = sample_shape("sphere", 3000, noise=0.01, seed=1)
     seen = []

@@ -5,7 +5,14 @@ import torch
 
 from cljn_addon.core import InputError, build_model, denoise
 from cljn_addon.core.evaluation.shapes import sample_shape
-from cljn_addon.core.noise import DISPLACEMENT_BOUND_SIGMAS, THIN_WALLED_SHARE, clamp_displacement, estimate_noise, estimate_noise_sigma
+from cljn_addon.core.noise import (
+    DISPLACEMENT_BOUND_SIGMAS,
+    THIN_WALLED_SHARE,
+    clamp_displacement,
+    estimate_noise,
+    estimate_noise_sigma,
+    surface_noise_sigma,
+)
 from cljn_addon.core.patches import bbox_diagonal
 
 
@@ -102,3 +109,32 @@ def test_thin_walled_handling_is_reported_and_can_be_turned_off():
     assert not off.thin_walled
     solid, _, _ = sample_shape("box", 8000, noise=0.006, seed=1)
     assert not denoise(solid, model, iterations="auto").thin_walled
+
+
+@pytest.mark.parametrize("name", ["sphere", "box", "torus"])
+@pytest.mark.parametrize("sigma", [0.005, 0.01, 0.02])
+def test_surface_noise_estimate_is_close_to_the_true_sigma(name, sigma):
+    noisy, _, _ = sample_shape(name, 30000, noise=sigma, seed=3)
+    radius = 0.05 * bbox_diagonal(noisy)
+    est = surface_noise_sigma(noisy, radius, estimate_noise_sigma(noisy, radius))
+    assert 0.85 * sigma < est < 1.12 * sigma
+
+
+def test_surface_noise_estimate_reads_sharp_detail_closer_than_the_ball_fit():
+    """A star prism's tips and edges fill most balls of the patch radius, not most
+    neighbourhoods of a dozen points."""
+    noisy, _, _ = sample_shape("star_prism", 20000, noise=0.006, seed=2)
+    radius = 0.05 * bbox_diagonal(noisy)
+    ball = estimate_noise_sigma(noisy, radius)
+    surface = surface_noise_sigma(noisy, radius, ball)
+    assert surface < 0.92 * ball
+    assert 0.85 * 0.006 < surface < 1.3 * 0.006
+
+
+def test_surface_noise_estimate_is_in_cloud_units_and_thins_dense_clouds():
+    noisy, _, _ = sample_shape("sphere", 200_000, noise=0.01, seed=4)
+    far = noisy * 40.0 + np.array([512_345.0, 5_401_234.0, 312.0])
+    radius = 0.05 * bbox_diagonal(far)
+    est = surface_noise_sigma(far, radius, estimate_noise_sigma(far, radius))
+    assert 0.85 * 0.4 < est < 1.12 * 0.4
+    assert np.isnan(surface_noise_sigma(noisy[:20], 0.05, 0.01))

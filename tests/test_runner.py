@@ -184,9 +184,11 @@ def test_denoise_ply_keeps_properties_and_moves_points(tmp_path, model_path, tor
     moved = np.linalg.norm(back.points.astype(np.float64) - torus.astype(np.float32), axis=1)
     assert entry["mean_displacement"] == pytest.approx(moved.mean(), rel=1e-3, abs=1e-6)
     assert entry["seconds"] > 0
+    assert entry["passes"] == 1 and entry["stopped_by_noise"] is False     # --iterations 1
     options = json.loads(report.read_text())["options"]
     assert options["patch_radius_percent"] == 6 and options["viewpoint"] == [0, 0, 5]
     assert "outliers flagged" in captured.out and "mean displacement" in captured.out
+    assert ", 1 pass, " in captured.out
 
 
 def test_in_place_keeps_a_backup(tmp_path, model_path, torus, capsys):

@@ -270,6 +270,9 @@ class CloudCommand:
         thin = bool(getattr(res, "thin_walled", False))
         if thin:
             noise += "thin-walled (own-side patches), "
+        passes = int(getattr(res, "iterations", 0))
+        stopped = bool(getattr(res, "stopped_early", False))
+        noise += f"{passes} pass{'es' if passes != 1 else ''}" + (" (stopped: moved as far as the noise), " if stopped else ", ")
         ran_on = getattr(res, "ran_on", "")
         where = f"on {ran_on}, " if ran_on else ""
         line = (f"{label}: {n} points, {outliers} outliers flagged, "
@@ -280,7 +283,7 @@ class CloudCommand:
         return {"points": n, "outliers": outliers, "mean_displacement": disp,
                 "noise_sigma": sigma if math.isfinite(sigma) else None,
                 "displacement_bound": bound if math.isfinite(bound) else None,
-                "thin_walled": thin, "seconds": round(seconds, 3), "ran_on": ran_on}
+                "thin_walled": thin, "passes": passes, "stopped_by_noise": stopped, "seconds": round(seconds, 3), "ran_on": ran_on}
 
     def _keep_preview(self, job, label, before, res):
         if self.args.preview:
