@@ -148,9 +148,10 @@ def surface_noise_sigma(points, radius, pilot_sigma, sample=NOISE_SAMPLE, seed=0
     fit's leverage, is N(0, sigma^2) wherever the surface is smooth over a few point
     spacings, so creases and fine detail, which take a few percent of those tiny
     neighbourhoods but most balls of the patch radius, hardly bias the median: on detail and
-    creases (star prism, column head at 0.6%) it reads 1.0-1.45x sigma where
-    `estimate_noise` reads 1.2-1.5x, on solids at 2% 0.86-1.0x (0.86-0.93x). It does not
-    separate the two sides of a thin part (a plate at 0.6%: 1.65x), so thin-walled objects
+    creases at 0.6% (star_smooth, star prism, column_head) it reads 1.03-1.47x sigma where
+    `estimate_noise` reads 1.17-1.50x, on solids at 2% 0.88-0.96x (0.86-0.93x). It reads high
+    where another face lies within its reach (thin prisms at 2%: up to 2x) and does not
+    separate the two sides of a thin part (a plate at 0.6%: 1.68x), so thin-walled objects
     keep `estimate_noise`. Dense clouds are thinned at random first (the noise statistics
     do not change) so that the candidate search reaches the whole height range.
     """
