@@ -280,6 +280,10 @@ class _PointsOperator(_JobOperator):
         text = f"{what} {written} point cloud{'s' if written > 1 else ''} ({points:,} points) in {seconds:.1f} s"
         if moved:
             text += f"; mean move {float(np.mean(np.concatenate(moved))):.4g}"
+            passes = sorted({int(getattr(r, "iterations", 0)) for r in results})
+            text += f"; {'/'.join(map(str, passes))} pass{'' if passes == [1] else 'es'}"
+            if any(getattr(r, "stopped_early", False) for r in results):
+                text += " (auto stopped once points had moved as far as the noise)"
         self.report({"INFO"}, text)
         return {"FINISHED"}
 

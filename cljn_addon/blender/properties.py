@@ -40,7 +40,8 @@ class CLJN_PG_settings(bpy.types.PropertyGroup):
     auto_iterations: BoolProperty(
         name="Auto Iterations", default=True,
         description="Choose 1-4 filtering passes from the cloud's estimated noise (fewer at low noise "
-                    "keep fine detail and thin parts); untick to set Iterations yourself")
+                    "keep fine detail and thin parts), stopping once points have moved as far as the "
+                    "noise; untick to set Iterations yourself")
     iterations: IntProperty(
         name="Iterations", default=4, min=1, max=20, soft_max=10,
         description="Filtering passes; more removes more noise (4 is the paper's default, 10 for heavy noise)")

@@ -119,7 +119,8 @@ def _add_cloud_options(p: argparse.ArgumentParser, normals_only: bool):
     eng.add_argument("--iterations", type=iterations_arg, default="auto",
                      help=("accepted for symmetry with denoise: normals take one network pass"
                            if normals_only else
-                           "filtering iterations, or auto (default): 1-4 chosen from the estimated noise"))
+                           "filtering iterations, or auto (default): 1-4 chosen from the estimated noise, "
+                           "stopping once points have moved as far as the noise"))
     eng.add_argument("--patch-radius", type=_percent, metavar="PERCENT",
                      help="patch radius in percent of the bounding-box diagonal (default 5)")
     if not normals_only:
