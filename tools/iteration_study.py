@@ -5,7 +5,7 @@ from the input in units of the true sigma and of the estimated one. Prints a tab
 and, per rule, the mean ratio of its Chamfer to the best pass count's:
 - `auto`: the engine's rule: the count from the estimated sigma (core.infer.iterations_for_noise;
   one pass on a thin-walled object), stopping before the first pass whose RMS move passes
-  core.infer.STOP_MOVE_SIGMAS x the surface noise estimate (core.noise.surface_noise_sigma);
+  core.infer.auto_stop_move (STOP_MOVE_SIGMAS x core.noise.surface_noise_sigma);
 - `count`: the count alone, without the stop (auto before the stop existed);
 - `4`: the paper's fixed four passes;
 - `oracle`: the discrepancy principle with the true sigma (stop before the RMS move passes
@@ -31,8 +31,7 @@ from cljn_addon.core.evaluation.evaluate import prepare_shape  # noqa: E402
 from cljn_addon.core.evaluation.metrics import chamfer, point2surface  # noqa: E402
 from cljn_addon.core.evaluation.shapes import shape_mesh  # noqa: E402
 from cljn_addon.core.formats.meshes import read_mesh  # noqa: E402
-from cljn_addon.core.infer import STOP_MOVE_SIGMAS, iterations_for_noise  # noqa: E402
-from cljn_addon.core.noise import surface_noise_sigma  # noqa: E402
+from cljn_addon.core.infer import auto_iteration_count, auto_stop_move  # noqa: E402
 from cljn_addon.core.patches import bbox_diagonal  # noqa: E402
 
 
@@ -63,15 +62,15 @@ def study(name, level, n_points, model, seed=1, record_all=None):
 
     res = core.denoise(noisy, model, iterations=4, on_iteration=record)
     radius = model.config.patch_radius_fraction * bbox_diagonal(noisy)
-    count = 1 if res.thin_walled else iterations_for_noise(res.noise_sigma, radius)
-    surface = surface_noise_sigma(noisy, radius, res.noise_sigma) if count > 1 else float("nan")
-    auto = next((i for i in range(1, count) if passes[i][1] > STOP_MOVE_SIGMAS * surface), count)
+    count = auto_iteration_count(res.noise_sigma, radius, res.thin_walled)
+    stop_move = auto_stop_move(noisy, radius, res.noise_sigma) if count > 1 else float("inf")
+    auto = next((i for i in range(1, count) if passes[i][1] > stop_move), count)
     if record_all is not None:
         record_all.update(name=name, level=level, points=n_points, seed=seed, sigma_hat=res.noise_sigma,
                           radius=radius, input_chamfer=chamfer(noisy, clean),
                           input_p2s=float(np.mean(point2surface(noisy, v, f))),
                           chamfer=[p[0] for p in passes], rms=[p[1] for p in passes], p2s=p2s,
-                          thin_walled=res.thin_walled, surface_sigma=surface, auto=auto, count=count)
+                          thin_walled=res.thin_walled, stop_move=stop_move, auto=auto, count=count)
     return ([(cd, rms / level, rms / res.noise_sigma) for cd, rms in passes], res.noise_sigma, radius,
             (auto, count))
 

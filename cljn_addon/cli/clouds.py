@@ -265,18 +265,18 @@ class CloudCommand:
         seconds = float(getattr(res, "seconds", 0.0) or 0.0)
         sigma = float(getattr(res, "noise_sigma", float("nan")))
         bound = float(getattr(res, "displacement_bound", float("inf")))
-        noise = (f"estimated noise {sigma:.4g} (no point moved more than {bound:.4g}), "
+        details = (f"estimated noise {sigma:.4g} (no point moved more than {bound:.4g}), "
                  if math.isfinite(sigma) else "")
         thin = bool(getattr(res, "thin_walled", False))
         if thin:
-            noise += "thin-walled (own-side patches), "
+            details += "thin-walled (own-side patches), "
         passes = int(getattr(res, "iterations", 0))
         stopped = bool(getattr(res, "stopped_early", False))
-        noise += f"{passes} pass{'es' if passes != 1 else ''}" + (" (stopped: moved as far as the noise), " if stopped else ", ")
+        details += f"{passes} pass{'es' if passes != 1 else ''}" + (" (stopped: moved as far as the noise), " if stopped else ", ")
         ran_on = getattr(res, "ran_on", "")
         where = f"on {ran_on}, " if ran_on else ""
         line = (f"{label}: {n} points, {outliers} outliers flagged, "
-                f"mean displacement {disp:.4g}, {noise}{where}{seconds:.1f} s")
+                f"mean displacement {disp:.4g}, {details}{where}{seconds:.1f} s")
         if output is not None:
             line += f" -> {output}"
         out(line)

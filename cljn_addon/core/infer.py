@@ -144,6 +144,19 @@ def iterations_for_noise(sigma, radius):
     return int(np.clip(np.round(sigma / radius / AUTO_SIGMA_PER_ITERATION), 1, MAX_AUTO_ITERATIONS))
 
 
+def auto_iteration_count(sigma, radius, thin_walled):
+    """Passes iterations='auto' plans before its stop: one on a thin-walled object (see `_run`),
+    else `iterations_for_noise`."""
+    return 1 if thin_walled else iterations_for_noise(sigma, radius)
+
+
+def auto_stop_move(points, radius, sigma, seed=0):
+    """RMS move from the input past which iterations='auto' drops a pass: `STOP_MOVE_SIGMAS`
+    x the noise read along the surface (`noise.surface_noise_sigma`); inf when it cannot be read."""
+    stop = STOP_MOVE_SIGMAS * surface_noise_sigma(points, radius, sigma, seed=seed)
+    return stop if np.isfinite(stop) else float("inf")
+
+
 def denoise(points, model, iterations=4, **options):
     """Filter a noisy cloud and estimate oriented normals (options: see `_run`)."""
     return _run(points, model, iterations, move_points=True, **options)
@@ -238,13 +251,11 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
         # A thin-walled object gets one pass: own-sheet patches catch ~60% of the patches that
         # straddle a wall 2.5 sigma thick, each pass draws the faces a little together, and
         # passes compound (l_bracket at 1.1%: Chamfer 14.8 after 3 passes, 9.6 after 1).
-        iterations = 1 if thin_walled else iterations_for_noise(sigma, radius0)
+        iterations = auto_iteration_count(sigma, radius0, thin_walled)
     stop_move = float("inf")
     if auto_iterations and iterations > 1:
         report(0.0, "estimating the noise level along the surface")
-        stop_move = STOP_MOVE_SIGMAS * surface_noise_sigma(current, radius0, sigma, seed=seed)
-        if not np.isfinite(stop_move):
-            stop_move = float("inf")
+        stop_move = auto_stop_move(current, radius0, sigma, seed=seed)
     stopped_early = False
     # Inflation and LRMA leave out neighbours further than this from a point's tangent plane
     # (the other side of a thin part); unknown noise (a bound given by the caller): the paper's.

@@ -168,12 +168,11 @@ def surface_noise_sigma(points, radius, pilot_sigma, sample=NOISE_SAMPLE, seed=0
     if crowd > SURFACE_CANDIDATES / 2:
         keep = max(int(len(pts) * SURFACE_CANDIDATES / 2 / crowd), 8 * k)
         pts = pts[rng.choice(len(pts), size=keep, replace=False)]
-        tree = cKDTree(pts)
     picked = rng.choice(len(pts), size=min(sample, len(pts)), replace=False)
     centres = pts[picked]
-    ball, _ = PatchSource(pts, radius, NOISE_PATCH_POINTS, rng).gather(centres, rng)
-    frames = pca_frames(ball)
-    dist, idx = tree.query(centres, k=min(SURFACE_CANDIDATES, len(pts)), distance_upper_bound=reach, workers=-1)
+    source = PatchSource(pts, radius, NOISE_PATCH_POINTS, rng)
+    frames = pca_frames(source.gather(centres, rng)[0])
+    dist, idx = source.full_tree.query(centres, k=min(SURFACE_CANDIDATES, len(pts)), distance_upper_bound=reach, workers=-1)
     valid = np.isfinite(dist) & (idx != picked[:, None])
     idx = np.where(valid, idx, 0)
     local = np.einsum("mij,mnj->mni", frames, pts[idx] - centres[:, None])
