@@ -74,3 +74,28 @@ def test_msae_floor_normals_blend_at_an_edge_and_beat_committing_to_a_face():
     floor_msae = metrics.msae(floor, truth)
     assert floor_msae < metrics.msae(nearest_face, truth)
     assert floor_msae < min(metrics.msae(pca_normals(noisy, k), truth) for k in (20, 40, 80))
+
+
+def test_sign_ceiling_is_phi_of_half_the_thickness_on_a_plate_and_full_on_a_solid():
+    """On a plate t thick only a point's height between the faces tells its face: no method
+    can orient more than Phi(t / 2 sigma) of the plate's points (89.4% at t = 2.5 sigma)."""
+    from math import erf, sqrt
+
+    from cljn_addon.core.evaluation.shapes import box, sample_mesh
+
+    sigma, t = 0.004, 0.01
+    v, f = box((1.0, 1.0, t))
+    rng = np.random.default_rng(1)
+    clean, truth, _ = sample_mesh(v, f, 20000, rng)
+    noisy = clean + rng.normal(scale=sigma, size=clean.shape)
+    ceiling = metrics.sign_ceiling_normals(noisy, v, f, sigma)
+    on_faces = np.abs(truth[:, 2]) > 0.99
+    phi = 0.5 * (1 + erf(t / (2 * sigma) / sqrt(2)))
+    assert abs(metrics.sign_agreement(ceiling[on_faces], truth[on_faces]) - phi) < 0.015
+    # The truth itself agrees fully: the ceiling is about what a cloud tells, not the truth.
+    assert metrics.sign_agreement(truth, truth) == 1.0
+    # A solid box, the same noise: every face can be told.
+    v, f = box((1.0, 1.0, 0.5))
+    clean, truth, _ = sample_mesh(v, f, 20000, rng)
+    noisy = clean + rng.normal(scale=sigma, size=clean.shape)
+    assert metrics.sign_agreement(metrics.sign_ceiling_normals(noisy, v, f, sigma), truth) > 0.995

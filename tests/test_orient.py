@@ -4,8 +4,8 @@ import pytest
 
 from cljn_addon.core import InputError
 from cljn_addon.core.evaluation.baselines import pca_normals
-from cljn_addon.core.evaluation.metrics import sign_agreement
-from cljn_addon.core.evaluation.shapes import sample_shape
+from cljn_addon.core.evaluation.metrics import sign_agreement, sign_ceiling_normals
+from cljn_addon.core.evaluation.shapes import normalise_unit_diagonal, sample_shape, shape_mesh
 from cljn_addon.core.orient import clear_view_signs, orient_normals, visibility_votes
 
 
@@ -16,6 +16,8 @@ def test_outward_orientation_of_estimated_normals(name, noise):
     unoriented = pca_normals(noisy, 60)              # arbitrary signs, blurred at edges
     oriented = orient_normals(noisy, unoriented, "outward")
     assert sign_agreement(oriented, truth) >= 0.99
+    # Step 5 (the input side of points seen from both sides) leaves solids alone.
+    assert np.array_equal(orient_normals(noisy, unoriented, "outward", sources=noisy), oriented)
     assert np.allclose(np.abs(oriented), np.abs(unoriented))   # signs change, nothing else
 
 
@@ -85,14 +87,19 @@ def test_visibility_orients_both_sides_of_thin_parts(name, noise, least):
     assert sign_agreement(orient_normals(points, scrambled, "outward"), truth) >= least
 
 
-@pytest.mark.xfail(strict=True, reason="issue #12: at 0.6% noise a thin tip or a 2.5-sigma plate still "
-                                       "has points no view sees clearly (star prism 96.9%, plate 88.0%)")
 @pytest.mark.parametrize("name", ["star_prism", "thin_plate"])
-def test_outward_orientation_of_thin_parts(name):
+def test_outward_orientation_of_thin_parts_reaches_its_ceiling(name):
+    """At 0.6% noise a star tip or a 2.5-sigma plate has points whose face no method can tell
+    (issue #12 asked for 99%: the ceiling is 97.6% and 89.2% on these clouds); orientation of
+    exact normals with random signs comes within 1.5 points of it."""
     noisy, _, truth = sample_shape(name, 30000, noise=0.006, seed=8)
     rng = np.random.default_rng(0)
     scrambled = truth * np.where(rng.random(len(truth)) < 0.5, -1.0, 1.0)[:, None]
-    assert sign_agreement(orient_normals(noisy, scrambled, "outward"), truth) >= 0.99
+    v, f = shape_mesh(name)
+    ceiling = sign_agreement(sign_ceiling_normals(noisy, normalise_unit_diagonal(v), f, 0.006), truth)
+    assert ceiling < 0.99
+    for sources in (None, noisy):
+        assert sign_agreement(orient_normals(noisy, scrambled, "outward", sources=sources), truth) >= ceiling - 0.015
 
 
 def test_open_terrain_faces_up_and_a_flat_closed_box_still_faces_out():
@@ -128,6 +135,7 @@ def test_an_open_scan_is_left_to_propagation():
                  0.3 * np.sin(3 * u[:, 0]) * np.sin(2 * u[:, 1]) - 0.6 * u[:, 1], np.ones(len(u))]
     truth = grad / np.linalg.norm(grad, axis=1, keepdims=True)
     scrambled = truth * np.where(rng.random(len(u)) < 0.5, -1.0, 1.0)[:, None]
-    out = orient_normals(pts, scrambled, "outward")
-    agree = sign_agreement(out, truth)
-    assert max(agree, 1 - agree) >= 0.99            # one consistent side, whichever it is
+    for sources in (None, pts):     # the input side of step 5 must not scramble it either
+        out = orient_normals(pts, scrambled, "outward", sources=sources)
+        agree = sign_agreement(out, truth)
+        assert max(agree, 1 - agree) >= 0.99        # one consistent side, whichever it is
