@@ -60,3 +60,16 @@ def test_jet_smoothing_baseline_cleans_a_curved_surface():
     assert chamfer(jet, clean) < 0.5 * chamfer(noisy, clean)
     # Same order as the input: each output point stays near its own noisy point.
     assert np.linalg.norm(jet - noisy, axis=1).max() < 0.05
+
+
+def test_evaluate_reports_the_sign_ceiling_beside_sign(result):
+    """At 1.5% noise a plate 1.5% thick cannot be oriented much past Phi(0.5) ~ 69% by any
+    method; a box can be fully."""
+    shapes = {s["shape"]: s for s in result["levels"][0]["shapes"]}
+    assert shapes["box"]["sign_ceiling"] > 0.98
+    assert 0.6 < shapes["thin_plate"]["sign_ceiling"] < 0.85
+    for s in shapes.values():
+        assert s["sign_ours"] <= s["sign_ceiling"] + 0.01
+    table = format_table(result)
+    assert "sign ok (ceiling)" in table
+    assert f"({shapes['thin_plate']['sign_ceiling'] * 100:.1f}%)" in table

@@ -113,7 +113,8 @@ def orient_outward(points: np.ndarray, normals: np.ndarray, k: int = 10, sources
     if n < 2:
         return normals.copy()
     k = min(k, n - 1)
-    _, nbr = cKDTree(points).query(points, k=k + 1, workers=-1)
+    tree = cKDTree(points)
+    _, nbr = tree.query(points, k=k + 1, workers=-1)
     i = np.repeat(np.arange(n), k)
     j = nbr[:, 1:].ravel()
     # Geometry is read from points slid onto their own tangent planes (through the centroid
@@ -191,21 +192,22 @@ def orient_outward(points: np.ndarray, normals: np.ndarray, k: int = 10, sources
 
     # 5. Walls thinner than the noise: the side of the input each point lay on.
     if sources is not None and two_sided.any():
-        oriented = _face_input_side(points, oriented, np.asarray(sources, np.float64), two_sided)
+        oriented = _face_input_side(points, tree, oriented, np.asarray(sources, np.float64), two_sided)
     return oriented
 
 
-def _face_input_side(points, normals, sources, two_sided):
+def _face_input_side(points, tree, normals, sources, two_sided):
     """Step 5 of the module doc: points seen from both sides, among neighbours mostly seen from
-    both sides, face the side of the local input median their own input position lies on."""
-    n = len(points)
-    _, near = cKDTree(points).query(points, k=min(TWO_SIDED_NEIGHBOURS, n), workers=-1)
-    wall = two_sided & (two_sided[near.reshape(n, -1)].mean(axis=1) >= TWO_SIDED_SHARE)
-    idx = np.flatnonzero(wall)
+    both sides, face the side of the local input median their own input position lies on.
+    tree: the k-d tree of `points`."""
+    candidates = np.flatnonzero(two_sided)
+    _, near = tree.query(points[candidates], k=min(TWO_SIDED_NEIGHBOURS, len(points)), workers=-1)
+    idx = candidates[two_sided[near.reshape(len(candidates), -1)].mean(axis=1) >= TWO_SIDED_SHARE]
     if not len(idx):
         return normals
     nrm = normals[idx]
-    _, around = cKDTree(sources).query(points[idx], k=min(INPUT_SIDE_NEIGHBOURS, len(sources)), workers=-1)
+    source_tree = tree if np.array_equal(sources, points) else cKDTree(sources)   # normals only: the same cloud
+    _, around = source_tree.query(points[idx], k=min(INPUT_SIDE_NEIGHBOURS, len(sources)), workers=-1)
     around = around.reshape(len(idx), -1)
     median = np.median(np.einsum("mkc,mc->mk", sources[around] - points[idx, None], nrm), axis=1)
     side = np.einsum("mc,mc->m", sources[idx] - points[idx], nrm) - median
