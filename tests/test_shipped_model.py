@@ -145,12 +145,14 @@ def test_auto_iterations_stop_once_a_thin_shape_has_moved_by_the_noise(shipped, 
     assert rms_move < 1.3 * noise
 
 
-@pytest.mark.parametrize("name, gain", [("thin_tube", 0.04), ("star_prism", 0.01)])
+@pytest.mark.parametrize("name, gain", [("thin_tube", 0.04), ("star_prism", 0.01), ("thin_plate", 0.1)])
 def test_points_seen_from_both_sides_face_their_input_side(shipped, name, gain):
     """Walls and tips thinner than the noise: the denoised points of both faces lie together and
     are seen from both sides; their input positions still tell their faces apart (orient step
-    5). Measured at 0.6%, 20K: tube 54.9% -> 61.8%, star prism 94.5% -> 96.5%; the most any
-    method can reach there (metrics.sign_ceiling_normals) is 90.0% and 97.8%."""
+    5). Measured at 0.6%, 20K: tube 54.9% -> 61.8%, star prism 94.5% -> 96.5%, plate 50.2% ->
+    66.6% (its faces came out as one sheet, seen from both sides everywhere like an open scan:
+    step 5 runs because the object was found thin-walled); the most any method can reach there
+    (metrics.sign_ceiling_normals) is 90.0%, 97.8% and 89.5%."""
     from cljn_addon.core.evaluation.metrics import sign_ceiling_normals
     from cljn_addon.core.evaluation.shapes import normalise_unit_diagonal, shape_mesh
     from cljn_addon.core.orient import orient_normals

@@ -321,7 +321,8 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
     report(0.97, "orienting normals")
     if viewpoint is not None and np.shape(viewpoint) == (3,):
         viewpoint = np.asarray(viewpoint, np.float64) - centre
-    all_normals = orient_normals(out_points - centre, all_normals, orientation, viewpoint, sources=original)
+    all_normals = orient_normals(out_points - centre, all_normals, orientation, viewpoint, sources=original,
+                                 thin_walled=thin_walled)
     all_normals /= np.linalg.norm(all_normals, axis=1, keepdims=True)
     displacement = np.linalg.norm(out_points - given, axis=1)
     report(1.0, "done")

@@ -22,7 +22,8 @@ CAD edges:
    votes (an open scan) is left to steps 1-3 entirely.
 5. Walls thinner than the noise (ours, when the input positions are given): on a closed
    object, a point seen from both sides among neighbours mostly seen from both sides lies on
-   a wall whose two faces were drawn together (or never told apart). Only its own input
+   a wall whose two faces were drawn together (or never told apart); on a thin-walled object
+   (two sheets found by the noise estimate) also when the cloud looks open. Only its own input
    position still says which face it was sampled from: it faces the side of the local median
    of the input it lay on. On a wall t thick that is right for Phi(t / 2 sigma) of the points,
    which is also the most any method can reach (`evaluation.metrics.sign_ceiling_normals`).
@@ -105,9 +106,12 @@ def _tree_signs(n_nodes, i, j, cost, sign_of_edge, labels, n_labels):
     return sign[:n_nodes]
 
 
-def orient_outward(points: np.ndarray, normals: np.ndarray, k: int = 10, sources=None) -> np.ndarray:
+def orient_outward(points: np.ndarray, normals: np.ndarray, k: int = 10, sources=None,
+                   thin_walled=False) -> np.ndarray:
     """Outward normals for a closed shape (steps 1-5 of the module doc). sources: each point's
-    input position (before denoising; the points themselves for a normals-only run), for step 5."""
+    input position (before denoising; the points themselves for a normals-only run), for step 5.
+    thin_walled: the noise estimate found two sheets in many balls (`noise.estimate_noise`), so
+    points seen from both sides are walls even when the cloud looks like an open scan."""
     n = len(points)
     normals = np.asarray(normals, np.float64)
     if n < 2:
@@ -133,7 +137,10 @@ def orient_outward(points: np.ndarray, normals: np.ndarray, k: int = 10, sources
         # An open scan (one sweep of a range scanner, a terrain, vegetation): most points are
         # seen from both sides or not at all, and the few clear votes would scramble it.
         view_sign[:] = 0
-        two_sided[:] = False
+        if not thin_walled:
+            # ... unless it is thin-walled: then its faces were drawn together (a plate whose
+            # two faces came out as one sheet is seen from both sides everywhere, like a scan).
+            two_sided[:] = False
     smooth &= view_sign[i] * view_sign[j] * np.sign(dot) >= 0
 
     # 1. Hoppe propagation inside smooth regions.
@@ -294,10 +301,11 @@ def orient_toward(points, normals, viewpoint):
     return normals * np.where(facing < 0, -1.0, 1.0)[:, None]
 
 
-def orient_normals(points, normals, mode="outward", viewpoint=None, sources=None):
+def orient_normals(points, normals, mode="outward", viewpoint=None, sources=None, thin_walled=False):
     """Orient unit normals: 'outward' (closed shapes), 'viewpoint' (scans) or 'none'.
     sources ('outward' only): each point's input position, so that points on walls thinner
-    than the noise can face the side they were sampled on (step 5 of the module doc)."""
+    than the noise can face the side they were sampled on (step 5 of the module doc);
+    thin_walled: see `orient_outward`."""
     if mode not in ORIENTATIONS:
         raise InputError(f"unknown orientation {mode!r}; choose one of {', '.join(ORIENTATIONS)}")
     if mode == "none":
@@ -309,4 +317,4 @@ def orient_normals(points, normals, mode="outward", viewpoint=None, sources=None
         if vp.size != 3 or not np.isfinite(vp).all():
             raise InputError(f"viewpoint must be three finite numbers, got {viewpoint!r}")
         return orient_toward(points, normals, vp)
-    return orient_outward(np.asarray(points, np.float64), normals, sources=sources)
+    return orient_outward(np.asarray(points, np.float64), normals, sources=sources, thin_walled=thin_walled)
