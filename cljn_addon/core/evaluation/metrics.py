@@ -174,7 +174,10 @@ def sign_ceiling_normals(noisy, vertices, faces, sigma, k=400, chunk=10000, seed
     came from: on a plate t thick no method can pass Phi(t / 2 sigma) of its faces (89% at
     t = 2.5 sigma, 65% at 0.75 sigma). Per point the best of three directions is kept: the
     posterior mean of the oriented normals (at an edge, the bisector agrees with both faces)
-    and both ways of the principal axis (on a plate, the likelier face)."""
+    and both ways of the principal axis (on a plate, the likelier face). Those are the best
+    directions on a plate and at an edge; where the posterior spans more faces a direction
+    outside the three could do slightly better, so strictly this is a lower bound of the
+    ceiling (and, like the MSAE floor, an expectation realised on this cloud)."""
     out = np.empty((len(noisy), 3))
     for part, w, nb in _origin_posterior(noisy, vertices, faces, sigma, k, chunk, seed):
         mean = np.einsum("mk,mkc->mc", w, nb)
