@@ -24,7 +24,7 @@ import numpy as np
 from ..config import TEST_NOISE_LEVELS
 from ..infer import denoise
 from .baselines import jet_smooth, jet_smoothing_available, pca_normals, pca_projection_filter
-from .metrics import MeshDistance, chamfer, msae, msae_floor_normals, sharp_feature_mask, sign_agreement, sign_ceiling_normals
+from .metrics import MeshDistance, chamfer, floor_and_ceiling_normals, msae, sharp_feature_mask, sign_agreement
 from .shapes import normalise_unit_diagonal, sample_mesh, signed_volume
 
 PCA_K = (10, 20, 40, 60, 100, 150, 200)
@@ -104,7 +104,7 @@ def evaluate(shapes, model, levels=TEST_NOISE_LEVELS, n_points=50_000, iteration
             res = denoise(cloud, model, iterations=iterations, orientation="outward", seed=seed)
             seconds = time.time() - t0
             sharp = shape["sharp"]
-            floor_n = msae_floor_normals(cloud, shape["v"], shape["f"], level)
+            floor_n, ceiling_n = floor_and_ceiling_normals(cloud, shape["v"], shape["f"], level)
             p2s_ours, truth_out = shape["dist"].nearest(res.points)
             entry = {
                 "shape": shape["name"],
@@ -121,8 +121,7 @@ def evaluate(shapes, model, levels=TEST_NOISE_LEVELS, n_points=50_000, iteration
                 "p2s_ours": float(p2s_ours.mean()),
                 # Outward truth exists only for closed, consistently wound meshes.
                 "sign_ours": sign_agreement(res.normals, shape["normals"]) if shape["closed"] else float("nan"),
-                "sign_ceiling": (sign_agreement(sign_ceiling_normals(cloud, shape["v"], shape["f"], level), shape["normals"])
-                                 if shape["closed"] else float("nan")),
+                "sign_ceiling": sign_agreement(ceiling_n, shape["normals"]) if shape["closed"] else float("nan"),
                 "noise_sigma_est": res.noise_sigma,
                 "iterations_run": float(res.iterations),
                 "seconds": seconds,

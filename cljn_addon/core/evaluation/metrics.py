@@ -135,6 +135,47 @@ def _origin_posterior(noisy, vertices, faces, sigma, k, chunk, seed):
         yield slice(s, s + chunk), w, surface_n[idx]
 
 
+def _karcher_axis(w, nb, steps):
+    """Per point, the weighted spherical (Karcher) mean of the unsigned normals nb (M, k, 3)."""
+    # Start from the principal axis of the weighted normals, then Karcher steps.
+    _, vecs = np.linalg.eigh(np.einsum("mk,mka,mkb->mab", w, nb, nb))
+    n = vecs[:, :, -1]
+    for _ in range(steps):
+        c = np.einsum("mc,mkc->mk", n, nb)
+        aligned = nb * np.where(c < 0, -1.0, 1.0)[..., None]
+        c = np.minimum(np.abs(c), 1.0)
+        theta = np.arccos(c)
+        tangent = aligned - c[..., None] * n[:, None, :]                # length sin(theta)
+        scale = np.where(theta > 1e-7, theta / np.maximum(np.sin(theta), 1e-12), 1.0)
+        v = np.einsum("mk,mkc->mc", w * scale, tangent)                 # mean of log maps
+        length = np.linalg.norm(v, axis=1, keepdims=True)
+        n = np.cos(length) * n + np.sin(length) * v / np.maximum(length, 1e-12)
+        n /= np.linalg.norm(n, axis=1, keepdims=True)
+    return n
+
+
+def _likeliest_side(w, nb):
+    """Per point, the direction the weighted oriented normals nb (M, k, 3) agree with most, of
+    three: their mean (the bisector at an edge) and both ways of their principal axis."""
+    mean = np.einsum("mk,mkc->mc", w, nb)
+    _, vecs = np.linalg.eigh(np.einsum("mk,mka,mkb->mab", w, nb, nb))
+    axis = vecs[:, :, -1]
+    candidates = np.stack([mean / np.maximum(np.linalg.norm(mean, axis=1, keepdims=True), 1e-300),
+                           axis, -axis], axis=1)                                   # (M, 3, 3)
+    agree = np.einsum("mk,mjk->mj", w, (np.einsum("mjc,mkc->mjk", candidates, nb) > 0).astype(np.float64))
+    return candidates[np.arange(len(w)), agree.argmax(axis=1)]
+
+
+def floor_and_ceiling_normals(noisy, vertices, faces, sigma, k=400, steps=8, chunk=10000, seed=0):
+    """(`msae_floor_normals`, `sign_ceiling_normals`) from one pass over the origin posterior
+    (the eval needs both for every cloud; the posterior is the expensive part)."""
+    floor, ceiling = np.empty((len(noisy), 3)), np.empty((len(noisy), 3))
+    for part, w, nb in _origin_posterior(noisy, vertices, faces, sigma, k, chunk, seed):
+        floor[part] = _karcher_axis(w, nb, steps)
+        ceiling[part] = _likeliest_side(w, nb)
+    return floor, ceiling
+
+
 def msae_floor_normals(noisy, vertices, faces, sigma, k=400, steps=8, chunk=10000, seed=0):
     """The normals that minimise the expected MSAE given everything but the face of origin.
 
@@ -147,21 +188,7 @@ def msae_floor_normals(noisy, vertices, faces, sigma, k=400, steps=8, chunk=1000
     """
     out = np.empty((len(noisy), 3))
     for part, w, nb in _origin_posterior(noisy, vertices, faces, sigma, k, chunk, seed):
-        # Start from the principal axis of the weighted normals, then Karcher steps.
-        _, vecs = np.linalg.eigh(np.einsum("mk,mka,mkb->mab", w, nb, nb))
-        n = vecs[:, :, -1]
-        for _ in range(steps):
-            c = np.einsum("mc,mkc->mk", n, nb)
-            aligned = nb * np.where(c < 0, -1.0, 1.0)[..., None]
-            c = np.minimum(np.abs(c), 1.0)
-            theta = np.arccos(c)
-            tangent = aligned - c[..., None] * n[:, None, :]                # length sin(theta)
-            scale = np.where(theta > 1e-7, theta / np.maximum(np.sin(theta), 1e-12), 1.0)
-            v = np.einsum("mk,mkc->mc", w * scale, tangent)                 # mean of log maps
-            length = np.linalg.norm(v, axis=1, keepdims=True)
-            n = np.cos(length) * n + np.sin(length) * v / np.maximum(length, 1e-12)
-            n /= np.linalg.norm(n, axis=1, keepdims=True)
-        out[part] = n
+        out[part] = _karcher_axis(w, nb, steps)
     return out
 
 
@@ -180,11 +207,5 @@ def sign_ceiling_normals(noisy, vertices, faces, sigma, k=400, chunk=10000, seed
     ceiling (and, like the MSAE floor, an expectation realised on this cloud)."""
     out = np.empty((len(noisy), 3))
     for part, w, nb in _origin_posterior(noisy, vertices, faces, sigma, k, chunk, seed):
-        mean = np.einsum("mk,mkc->mc", w, nb)
-        _, vecs = np.linalg.eigh(np.einsum("mk,mka,mkb->mab", w, nb, nb))
-        axis = vecs[:, :, -1]
-        candidates = np.stack([mean / np.maximum(np.linalg.norm(mean, axis=1, keepdims=True), 1e-300),
-                               axis, -axis], axis=1)                               # (M, 3, 3)
-        agree = np.einsum("mk,mjk->mj", w, (np.einsum("mjc,mkc->mjk", candidates, nb) > 0).astype(np.float64))
-        out[part] = candidates[np.arange(len(w)), agree.argmax(axis=1)]
+        out[part] = _likeliest_side(w, nb)
     return out
