@@ -4,7 +4,7 @@ sheets too; that is why the engine uses own-sheet patches only on clouds that ar
 as a whole: tests/test_noise.py.)"""
 import numpy as np
 
-from cljn_addon.core.sheets import fit_two_sheets, own_sheet_patches
+from cljn_addon.core.sheets import fit_two_sheets, own_sheet_patches, split_merged_walls
 
 
 def _patches(m, n, height, sigma, seed):
@@ -43,3 +43,76 @@ def test_two_parallel_sheets_three_sigma_apart_are_found_with_their_noise():
 def test_one_noisy_curved_sheet_is_not_split():
     pts = _patches(400, 128, lambda x, y, rng: 0.15 * x * x - 0.1 * y * y, 0.06, seed=2)
     assert fit_two_sheets(pts)["two"].mean() < 0.1
+
+
+# Walls that denoising merged into one sheet (split_merged_walls).
+
+def _wall(n, half_thickness, sigma, seed, collapse=True):
+    """A square wall (z = +-half_thickness faces) sampled n times, the noisy input and a stand-in
+    for the denoised cloud: every point on the mid-plane (the network's merge) or on its own
+    face (a network that kept the faces apart), with a little residual noise."""
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform(-1, 1, (n, 2))
+    face = np.where(rng.random(n) < 0.5, 1.0, -1.0)
+    clean = np.c_[xy, face * half_thickness]
+    noisy = clean + rng.normal(scale=sigma, size=clean.shape)
+    out = np.c_[noisy[:, :2], (0.0 if collapse else 1.0) * clean[:, 2] + rng.normal(scale=0.1 * sigma, size=n)]
+    normals = np.tile([0.0, 0.0, 1.0], (n, 1))
+    return clean, noisy, out, normals, face
+
+
+def _face_distance(points, half_thickness):
+    return np.abs(np.abs(points[:, 2]) - half_thickness).mean()
+
+
+def test_a_merged_wall_thinner_than_two_sigma_is_split_back_onto_its_faces():
+    sigma, half = 0.01, 0.0092                     # 1.84 sigma thick: a 1.5% plate at 0.8% noise
+    clean, noisy, merged, normals, face = _wall(20000, half, sigma, seed=3)
+    out, side = split_merged_walls(noisy, merged, normals)
+    assert (side != 0).mean() > 0.95
+    # Nearer the faces than the merged sheet (half) and than the noisy input.
+    assert _face_distance(out, half) < 0.3 * _face_distance(merged, half)
+    assert _face_distance(out, half) < 0.3 * _face_distance(noisy, half)
+    # Faces put back ~a apart; sides are the Bayes guess: Phi(t / 2 sigma) = 82% right.
+    assert abs(np.median(np.abs(out[side != 0, 2])) / half - 1) < 0.15
+    assert 0.75 < np.mean(side[side != 0] == face[side != 0]) < 0.9
+    # Along the sheet's normal only: x, y move by a tilt's worth, far less than z.
+    assert np.abs(out[:, :2] - merged[:, :2]).max() < 0.2 * half
+
+
+def test_one_noisy_sheet_and_walls_kept_apart_are_left_alone():
+    sigma = 0.01
+    # One noisy sheet denoised onto itself (the Gaussian heights of one face).
+    _, noisy, out, normals, _ = _wall(20000, 0.0, sigma, seed=4)
+    res, side = split_merged_walls(noisy, out, normals)
+    assert not side.any() and np.array_equal(res, out)
+    # A sheet whose noise varies 3x across the scan (a range scanner): heavy-tailed, not two faces.
+    rng = np.random.default_rng(5)
+    xy = rng.uniform(-1, 1, (20000, 2))
+    noisy = np.c_[xy, rng.normal(size=20000) * sigma * (1 + (xy[:, 0] + 1))]
+    res, side = split_merged_walls(noisy, np.c_[xy, np.zeros(20000)], normals)
+    assert not side.any()
+    # A wall 5 sigma thick whose faces the network kept apart: nothing merged, nothing moved.
+    _, noisy, out, normals, _ = _wall(20000, 0.025, sigma, seed=6, collapse=False)
+    res, side = split_merged_walls(noisy, out, normals)
+    assert (side != 0).mean() < 0.02
+    assert np.abs(res - out).max() < 2 * sigma
+
+
+def test_heights_stored_on_a_grid_are_not_taken_for_two_faces(monkeypatch):
+    """A LAS file at 1 cm over a scan with ~1 cm of noise: the heights come in a few levels,
+    flat-topped like two faces, but in bands along the surface (plane.laz: 5 distinct z)."""
+    import cljn_addon.core.sheets as sheets
+
+    rng = np.random.default_rng(7)
+    sigma, step = 0.01, 0.03
+    xy = rng.uniform(-1, 1, (20000, 2))
+    surface = 0.05 * xy[:, 0] + 0.03 * np.sin(3 * xy[:, 1])
+    noisy = np.c_[xy, np.round((surface + rng.normal(scale=sigma, size=20000)) / step) * step]
+    cleaned = np.c_[xy, surface]
+    normals = np.tile([0.0, 0.0, 1.0], (20000, 1))
+    _, side = split_merged_walls(noisy, cleaned, normals)
+    assert not side.any()
+    # The kurtosis alone would take it for two faces: it is the side test that tells.
+    monkeypatch.setattr(sheets, "SPLIT_MAX_AGREEMENT", 1.01)
+    assert (sheets.split_merged_walls(noisy, cleaned, normals)[1] != 0).mean() > 0.5

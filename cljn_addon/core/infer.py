@@ -18,6 +18,7 @@ from .noise import DISPLACEMENT_BOUND_SIGMAS, THIN_WALLED_SHARE, clamp_displacem
 from .orient import orient_normals
 from .patches import PatchSource, bbox_diagonal, from_frame, make_patches
 from .refine import inflation, lrma_update
+from .sheets import split_merged_walls
 
 ACTIVATION_BUDGET = 100_000_000   # floats per forward chunk: bounds memory on any cloud size
 
@@ -33,6 +34,7 @@ class DenoiseResult:
     noise_sigma: float = float("nan")        # estimated scanner noise (cloud units)
     displacement_bound: float = float("inf")  # no point moved further than this
     thin_walled: bool = False                # handled as a thin-walled object (own-sheet patches)
+    split_share: float = 0.0                 # share of points put back on their own face of a merged thin wall
     stopped_early: bool = False              # auto iterations stopped: points had moved as far as the noise
     ran_on: str = ""                         # device and backend, e.g. "cpu (numpy)"
 
@@ -171,7 +173,7 @@ def estimate_normals(points, model, **options):
 def _run(points, model, iterations, *, move_points, patch_radius=None, patch_radius_fraction=None,
          points_per_patch=None, orientation="outward", viewpoint=None,
          device="auto", progress=None, cancel=None, seed=0, refine=True, max_displacement=None,
-         normal_motion_only=True, own_sheet="auto", on_iteration=None):
+         normal_motion_only=True, own_sheet="auto", split_walls=True, on_iteration=None):
     """The engine behind `denoise` (move_points=True) and `estimate_normals` (False).
 
     points: (N, 3) array, any units. patch_radius: absolute radius; otherwise
@@ -193,6 +195,9 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
     both sides of a thin part) with own-sheet patches (`patches.make_patches`) and refinement
     that keeps to 2.5 rather than 4 sigma of each point's tangent plane (and one pass with
     iterations='auto'); False turns that off, True forces own-sheet patches on any cloud.
+    split_walls (ours, default True): where the passes merged the two faces of a wall thinner
+    than the noise into one sheet, put each point back on the face on its own side
+    (`sheets.split_merged_walls`; with outward orientation its normal faces that side).
     on_iteration(iteration, points): called after each moving pass with the whole cloud as it
     then stands (input coordinates and order), for studies such as tools/iteration_study.py.
     """
@@ -309,6 +314,12 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
         new_normals[np.einsum("ij,ij->i", new_normals, normals) < 0] *= -1
         normals = new_normals
 
+    side = np.zeros(len(current), np.int8)
+    if move_points and split_walls:
+        report(0.95, "looking for merged thin walls")
+        split, side = split_merged_walls(original[inliers], current, normals, seed=seed)
+        if side.any():
+            current = clamp_displacement(split, original[inliers], bound)
     out_points = given.copy()          # unmoved points (outliers, normals only) bit-identical
     if move_points:
         out_points[inliers] = current + centre
@@ -323,10 +334,17 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
         viewpoint = np.asarray(viewpoint, np.float64) - centre
     all_normals = orient_normals(out_points - centre, all_normals, orientation, viewpoint, sources=original,
                                  thin_walled=thin_walled)
+    if orientation == "outward" and side.any():
+        # A point put back on one face of a wall faces away from the other: the Bayes sign
+        # (its input lay on that side of the merged sheet).
+        rows = np.flatnonzero(side)
+        want = side[rows, None] * normals[rows]
+        flip = np.einsum("ij,ij->i", all_normals[inliers[rows]], want) < 0
+        all_normals[inliers[rows[flip]]] *= -1
     all_normals /= np.linalg.norm(all_normals, axis=1, keepdims=True)
     displacement = np.linalg.norm(out_points - given, axis=1)
     report(1.0, "done")
     return DenoiseResult(points=out_points, normals=all_normals.astype(np.float32), outliers=outliers,
                          displacement=displacement, seconds=time.time() - t0, iterations=iterations,
                          noise_sigma=sigma, displacement_bound=bound, ran_on=ran_on, thin_walled=thin_walled,
-                         stopped_early=stopped_early)
+                         stopped_early=stopped_early, split_share=float(np.mean(side != 0)) if len(side) else 0.0)
