@@ -260,6 +260,8 @@ def test_batch_with_failures_exit_3_and_report(tmp_path, model_path, torus):
     by_name = {Path(e["input"]).name: e for e in data["inputs"]}
     assert by_name["good.ply"]["status"] == "ok"
     assert by_name["good.ply"]["output"] == str(tmp_path / "out" / "good.ply")
+    # A solid torus: no merged thin walls to split.
+    assert by_name["good.ply"]["split_share"] == 0 and not by_name["good.ply"]["thin_walled"]
     for name in problems:
         assert by_name[name]["status"] == "error" and by_name[name]["output"] is None
         assert problems[name] in by_name[name]["error"]
