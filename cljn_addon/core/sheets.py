@@ -14,6 +14,9 @@ this only on objects that are thin-walled as a whole (`noise.estimate_noise`).
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial import cKDTree
+
+from .patches import pca_frames
 
 EM_ROUNDS = 12
 MIN_SHARE = 0.15           # each sheet holds at least this share of the patch
@@ -167,8 +170,7 @@ def _merged_sheet(p, q, tree):
         idx = _neighbours(tree, q[part], SHEET_NEIGHBOURS)
         nb = q[idx]
         sheet[part] = nb.mean(axis=1)
-        d = nb - sheet[part, None]
-        n = np.linalg.eigh(np.einsum("mni,mnj->mij", d, d))[1][:, :, 0]
+        n = pca_frames(nb - sheet[part, None])[:, 2]
         axis[part] = n
         height[part] = np.einsum("ij,ij->i", p[part] - sheet[part], n)
         t = nb - q[part, None]
@@ -220,8 +222,6 @@ def split_merged_walls(original, denoised, normals, seed=0):
     the positions with merged walls split, and side (N,) int8: +1 / -1 for a split point
     (its face lies that way along its normal), 0 elsewhere (left as it was).
     """
-    from scipy.spatial import cKDTree
-
     p = np.asarray(original, np.float64)
     q = np.asarray(denoised, np.float64)
     side = np.zeros(len(q), np.int8)
