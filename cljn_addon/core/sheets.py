@@ -16,8 +16,6 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .patches import pca_frames
-
 EM_ROUNDS = 12
 MIN_SHARE = 0.15           # each sheet holds at least this share of the patch
 MIN_GAP_SIGMAS = 2.0       # sheets at least this many noise sigmas apart
@@ -170,7 +168,8 @@ def _merged_sheet(p, q, tree):
         idx = _neighbours(tree, q[part], SHEET_NEIGHBOURS)
         nb = q[idx]
         sheet[part] = nb.mean(axis=1)
-        n = pca_frames(nb - sheet[part, None])[:, 2]
+        d = nb - sheet[part, None]
+        n = np.linalg.eigh(np.einsum("mni,mnj->mij", d, d))[1][:, :, 0]
         axis[part] = n
         height[part] = np.einsum("ij,ij->i", p[part] - sheet[part], n)
         t = nb - q[part, None]
