@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import importlib.metadata
 import os
+import shutil
 import subprocess
 import sys
 import textwrap
@@ -35,13 +36,18 @@ def bare_python():
     """A venv with only bpy (and what bpy itself requires)."""
     venv = REPO / ".cache" / f"venv-bare-bpy-{BPY_VERSION}"
     python = venv / "bin" / "python"
-    if not python.exists():
+    # Marked complete only after pip succeeds: a run stopped mid-install leaves no half venv
+    # that the next run would take for a bare Blender.
+    complete = venv / ".complete"
+    if not complete.exists():
+        shutil.rmtree(venv, ignore_errors=True)
         subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True)
         # numpy<2: what every Blender from 4.2 to 5.0 ships.
         proc = subprocess.run([str(python), "-m", "pip", "install", "--quiet", f"bpy=={BPY_VERSION}", "numpy<2"],
                               capture_output=True, text=True, timeout=1200)
         if proc.returncode != 0:
             pytest.skip(f"could not install bpy {BPY_VERSION} into a bare venv: {proc.stderr[-500:]}")
+        complete.touch()
     code = "import importlib.util as u; print([m for m in %r if u.find_spec(m)])" % (ENGINE_PACKAGES,)
     found = subprocess.run([str(python), "-c", code], capture_output=True, text=True, check=True).stdout
     assert found.strip() == "[]", f"the bare venv holds engine packages: {found}"

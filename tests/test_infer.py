@@ -56,6 +56,20 @@ def test_progress_reaches_one_and_cancel_stops(tiny):
         denoise(noisy, tiny, cancel=cancel)
 
 
+def test_cancel_during_the_wall_split_stops_it(tiny):
+    """The split runs after the last pass (seconds per 100K points, minutes at 10M): a cancel
+    set while it runs stops the run there, not after it."""
+    noisy, _, _ = sample_shape("sphere", 3000, noise=0.005, seed=4)
+    cancel = threading.Event()
+
+    def progress(fraction, message):
+        if message == "looking for merged thin walls":
+            cancel.set()
+
+    with pytest.raises(Cancelled):
+        denoise(noisy, tiny, iterations=1, progress=progress, cancel=cancel)
+
+
 @pytest.mark.parametrize("bad, message", [
     (np.zeros((0, 3)), "empty"),
     (np.zeros((10, 2)), r"\(N, 3\)"),

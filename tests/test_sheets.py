@@ -80,6 +80,45 @@ def test_a_merged_wall_thinner_than_two_sigma_is_split_back_onto_its_faces():
     assert np.abs(out[:, :2] - merged[:, :2]).max() < 0.2 * half
 
 
+def test_a_merged_wall_1_2_sigma_thick_is_found_by_the_whole_cloud_test(monkeypatch):
+    """A 1.5% plate at 1.2% noise: kurtosis 2.87, too close to 3 for the local pools (thousands
+    of tests) but many standard errors below it over the whole cloud (one test)."""
+    import cljn_addon.core.sheets as sheets
+
+    sigma, half = 0.01, 0.006
+    clean, noisy, merged, normals, face = _wall(40000, half, sigma, seed=8)
+    out, side = split_merged_walls(noisy, merged, normals)
+    assert (side != 0).mean() > 0.95
+    assert _face_distance(out, half) < 0.3 * _face_distance(merged, half)
+    assert abs(np.median(np.abs(out[side != 0, 2])) / half - 1) < 0.15
+    assert 0.68 < np.mean(side[side != 0] == face[side != 0]) < 0.78   # Phi(0.6) = 0.73
+    # With the local pools' thresholds on the whole cloud too, this wall stays merged.
+    monkeypatch.setattr(sheets, "SPLIT_Z_CLOUD", sheets.SPLIT_Z)
+    monkeypatch.setattr(sheets, "SPLIT_MIN_R_CLOUD", sheets.SPLIT_MIN_R)
+    assert not sheets.split_merged_walls(noisy, merged, normals)[1].any()
+
+
+def test_a_few_percent_merged_is_left_alone(monkeypatch):
+    """A merged wall holding 4% of the cloud, beside one clean sheet: under SPLIT_MIN_SHARE,
+    so nothing moves (a half-merged thick part, as on a gear at 2% noise, is likelier there
+    than a thin wall)."""
+    import cljn_addon.core.sheets as sheets
+
+    sigma = 0.01
+    _, noisy_sheet, out_sheet, normals_sheet, _ = _wall(38400, 0.0, sigma, seed=10)
+    _, noisy_wall, out_wall, normals_wall, _ = _wall(1600, 0.0125, sigma, seed=11)
+    place = np.array([0.2, 1.0, 1.0]), np.array([3.0, 0.0, 0.0])   # a strip beside the sheet
+    noisy = np.r_[noisy_sheet, noisy_wall * place[0] + place[1]]
+    out = np.r_[out_sheet, out_wall * place[0] + place[1]]
+    normals = np.r_[normals_sheet, normals_wall]
+    res, side = split_merged_walls(noisy, out, normals)
+    assert not side.any() and np.array_equal(res, out)
+    # The gate is what holds it: without it the strip (and only the strip) is split.
+    monkeypatch.setattr(sheets, "SPLIT_MIN_SHARE", 0.0)
+    side = sheets.split_merged_walls(noisy, out, normals)[1]
+    assert (side[-1600:] != 0).mean() > 0.9 and not side[:-1600].any()
+
+
 def test_one_noisy_sheet_and_walls_kept_apart_are_left_alone():
     sigma = 0.01
     # One noisy sheet denoised onto itself (the Gaussian heights of one face).

@@ -317,7 +317,7 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
     side = np.zeros(len(current), np.int8)
     if move_points and split_walls:
         report(0.95, "looking for merged thin walls")
-        split, side = split_merged_walls(original[inliers], current, normals, seed=seed)
+        split, side = split_merged_walls(original[inliers], current, normals, seed=seed, cancel=cancel)
         if side.any():
             current = clamp_displacement(split, original[inliers], bound)
     out_points = given.copy()          # unmoved points (outliers, normals only) bit-identical
