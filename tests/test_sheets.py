@@ -98,6 +98,27 @@ def test_a_merged_wall_1_2_sigma_thick_is_found_by_the_whole_cloud_test(monkeypa
     assert not sheets.split_merged_walls(noisy, merged, normals)[1].any()
 
 
+def test_a_solid_region_beside_walls_found_by_the_whole_cloud_is_left_alone(monkeypatch):
+    """80% of the cloud a merged wall 1.3 sigma thick, 20% one noisy sheet: only the whole-cloud
+    pool finds the two faces, and the sheet must not be split by the wall's offset."""
+    import cljn_addon.core.sheets as sheets
+
+    sigma = 0.01
+    _, noisy_sheet, out_sheet, normals_sheet, _ = _wall(8000, 0.0, sigma, seed=10)
+    _, noisy_wall, out_wall, normals_wall, _ = _wall(32000, 0.0065, sigma, seed=11)
+    beside = np.array([3.0, 0.0, 0.0])
+    noisy = np.r_[noisy_sheet, noisy_wall + beside]
+    out = np.r_[out_sheet, out_wall + beside]
+    normals = np.r_[normals_sheet, normals_wall]
+    res, side = split_merged_walls(noisy, out, normals)
+    assert (side[8000:] != 0).mean() > 0.95
+    assert not side[:8000].any() and np.array_equal(res[:8000], out[:8000])
+    # The local-spread gate is what keeps the sheet: without it a third of it moves.
+    monkeypatch.setattr(sheets, "SPLIT_LOCAL_EXCESS", -np.inf)
+    side = sheets.split_merged_walls(noisy, out, normals)[1]
+    assert (side[:8000] != 0).mean() > 0.1
+
+
 def test_a_few_percent_merged_is_left_alone(monkeypatch):
     """A merged wall holding 4% of the cloud, beside one clean sheet: under SPLIT_MIN_SHARE,
     so nothing moves (a half-merged thick part, as on a gear at 2% noise, is likelier there

@@ -146,6 +146,7 @@ SPLIT_MIN_R = 0.3                     # and a^2 >= 0.3 x the height variance (fa
 # (r 0.25-0.3) pass there at 20K points, while single sheets stay above kurtosis 2.95 (r < 0.16).
 SPLIT_Z_CLOUD = 3.0
 SPLIT_MIN_R_CLOUD = 0.2
+SPLIT_LOCAL_EXCESS = 0.15             # and there a^2 > 0.15 x the noise variance (~4 x its scatter)
 SPLIT_COLLAPSE = 0.8                  # merged: the output's local height spread < 0.8 a
 SHEET_NEIGHBOURS = 64                 # the merged sheet's point: centroid of this many outputs
 LOCAL_NEIGHBOURS = 200                # the local face offset a: input spread over this many
@@ -193,11 +194,12 @@ def _merged_sheet(p, q, tree, cancel=None):
 
 
 def _flat_topped(q, tree, height, same, rng):
-    """(centres, found, noise variance): pool centres where the input heights are flat-topped
-    and their sides mixed along the sheet (two faces), tested on pools of SPLIT_POOLS points,
-    smallest first."""
+    """(centres, found, noise variance, by_whole): pool centres where the input heights are
+    flat-topped and their sides mixed along the sheet (two faces), tested on pools of
+    SPLIT_POOLS points, smallest first; by_whole marks those only the whole-cloud pool found."""
     centres = rng.choice(len(q), size=min(SPLIT_CENTRES, len(q)), replace=False)
     found = np.zeros(len(centres), bool)
+    by_whole = np.zeros(len(centres), bool)
     noise_var = np.zeros(len(centres))
     for pool in SPLIT_POOLS:
         whole = pool >= len(q) or pool == SPLIT_POOLS[-1]
@@ -220,9 +222,10 @@ def _flat_topped(q, tree, height, same, rng):
         new = np.broadcast_to((z > least_z) & (r > least_r) & mixed, found.shape) & ~found
         noise_var[new] = np.broadcast_to(m2 * (1.0 - r), found.shape)[new]
         found |= new
+        by_whole |= new & whole
         if members.shape[1] >= len(q) or found.all():
             break
-    return centres, found, noise_var
+    return centres, found, noise_var, by_whole
 
 
 def split_merged_walls(original, denoised, normals, seed=0, cancel=None):
@@ -246,7 +249,7 @@ def split_merged_walls(original, denoised, normals, seed=0, cancel=None):
     sheet, n, height_in, same = _merged_sheet(p, q, tree, cancel)
     facing = np.where(np.einsum("ij,ij->i", n, normals) < 0, -1, 1).astype(np.int8)  # sides reported along `normals`
     height_out = np.einsum("ij,ij->i", q - sheet, n)
-    centres, found, noise_var = _flat_topped(q, tree, height_in, same, rng)
+    centres, found, noise_var, by_whole = _flat_topped(q, tree, height_in, same, rng)
     if not found.any():
         return q, side
     nearest = np.asarray(cKDTree(q[centres]).query(q, workers=-1)[1])
@@ -262,6 +265,16 @@ def split_merged_walls(original, denoised, normals, seed=0, cancel=None):
         mid[r] = h_loc.mean(axis=1)
         offset[r] = np.sqrt(np.clip(h_loc.var(axis=1) - noise_var[nearest[r]], 0.0, None))
         merged[r] = height_out[local].var(axis=1) < (SPLIT_COLLAPSE * offset[r]) ** 2
+    # The whole cloud's test says only that two faces lie somewhere in it. Where it alone
+    # found them, the input spread must exceed the noise there too, or a solid region beside
+    # thin walls would be split by their offset. One point's spread over 200 heights scatters
+    # by ~10% of the variance; averaged again over its 200 neighbours, by ~4%.
+    wide_rows = rows[by_whole[nearest[rows]] & merged[rows]]
+    excess = np.zeros(len(q))
+    excess[rows] = offset[rows] ** 2 / np.maximum(noise_var[nearest[rows]], 1e-300)
+    for part in _chunks(len(wide_rows), cancel):
+        r = wide_rows[part]
+        merged[r] = excess[_neighbours(tree, q[r], LOCAL_NEIGHBOURS)].mean(axis=1) > SPLIT_LOCAL_EXCESS
     rows = rows[merged[rows]]
     # Thin-walled parts merge over much of an object (70-100% of the thin shapes' points); a
     # few percent is a thick part the passes half merged (a gear's faces 4 sigma apart at 2%
