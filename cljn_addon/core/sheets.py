@@ -146,7 +146,7 @@ SPLIT_MIN_R = 0.3                     # and a^2 >= 0.3 x the height variance (fa
 # (r 0.25-0.3) pass there at 20K points, while single sheets stay above kurtosis 2.95 (r < 0.16).
 SPLIT_Z_CLOUD = 3.0
 SPLIT_MIN_R_CLOUD = 0.2
-SPLIT_LOCAL_EXCESS = 0.15             # and there a^2 > 0.15 x the noise variance (~4 x its scatter)
+SPLIT_LOCAL_EXCESS = 0.15             # found by the whole cloud alone: split where local a^2 > 0.15 x noise var
 SPLIT_COLLAPSE = 0.8                  # merged: the output's local height spread < 0.8 a
 SHEET_NEIGHBOURS = 64                 # the merged sheet's point: centroid of this many outputs
 LOCAL_NEIGHBOURS = 200                # the local face offset a: input spread over this many
