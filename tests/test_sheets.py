@@ -4,6 +4,7 @@ sheets too; that is why the engine uses own-sheet patches only on clouds that ar
 as a whole: tests/test_noise.py.)"""
 import numpy as np
 
+import cljn_addon.core.sheets as sheets
 from cljn_addon.core.sheets import fit_two_sheets, own_sheet_patches, split_merged_walls
 
 
@@ -61,6 +62,16 @@ def _wall(n, half_thickness, sigma, seed, collapse=True):
     return clean, noisy, out, normals, face
 
 
+def _sheet_beside_wall(sheet_n, wall_n, half_thickness, wall_scale=(1.0, 1.0, 1.0), sigma=0.01):
+    """One flat noisy sheet (sheet_n points, first) and a merged wall (wall_n points) beside it,
+    3 units along x, its x scaled by wall_scale: (noisy, merged output, normals)."""
+    _, noisy_sheet, out_sheet, normals_sheet, _ = _wall(sheet_n, 0.0, sigma, seed=10)
+    _, noisy_wall, out_wall, normals_wall, _ = _wall(wall_n, half_thickness, sigma, seed=11)
+    scale, beside = np.asarray(wall_scale), np.array([3.0, 0.0, 0.0])
+    return (np.r_[noisy_sheet, noisy_wall * scale + beside], np.r_[out_sheet, out_wall * scale + beside],
+            np.r_[normals_sheet, normals_wall])
+
+
 def _face_distance(points, half_thickness):
     return np.abs(np.abs(points[:, 2]) - half_thickness).mean()
 
@@ -83,8 +94,6 @@ def test_a_merged_wall_thinner_than_two_sigma_is_split_back_onto_its_faces():
 def test_a_merged_wall_1_2_sigma_thick_is_found_by_the_whole_cloud_test(monkeypatch):
     """A 1.5% plate at 1.2% noise: kurtosis 2.87, too close to 3 for the local pools (thousands
     of tests) but many standard errors below it over the whole cloud (one test)."""
-    import cljn_addon.core.sheets as sheets
-
     sigma, half = 0.01, 0.006
     clean, noisy, merged, normals, face = _wall(40000, half, sigma, seed=8)
     out, side = split_merged_walls(noisy, merged, normals)
@@ -101,15 +110,7 @@ def test_a_merged_wall_1_2_sigma_thick_is_found_by_the_whole_cloud_test(monkeypa
 def test_a_solid_region_beside_walls_found_by_the_whole_cloud_is_left_alone(monkeypatch):
     """80% of the cloud a merged wall 1.3 sigma thick, 20% one noisy sheet: only the whole-cloud
     pool finds the two faces, and the sheet must not be split by the wall's offset."""
-    import cljn_addon.core.sheets as sheets
-
-    sigma = 0.01
-    _, noisy_sheet, out_sheet, normals_sheet, _ = _wall(8000, 0.0, sigma, seed=10)
-    _, noisy_wall, out_wall, normals_wall, _ = _wall(32000, 0.0065, sigma, seed=11)
-    beside = np.array([3.0, 0.0, 0.0])
-    noisy = np.r_[noisy_sheet, noisy_wall + beside]
-    out = np.r_[out_sheet, out_wall + beside]
-    normals = np.r_[normals_sheet, normals_wall]
+    noisy, out, normals = _sheet_beside_wall(8000, 32000, 0.0065)
     res, side = split_merged_walls(noisy, out, normals)
     assert (side[8000:] != 0).mean() > 0.95
     assert not side[:8000].any() and np.array_equal(res[:8000], out[:8000])
@@ -123,15 +124,7 @@ def test_a_few_percent_merged_is_left_alone(monkeypatch):
     """A merged wall holding 4% of the cloud, beside one clean sheet: under SPLIT_MIN_SHARE,
     so nothing moves (a half-merged thick part, as on a gear at 2% noise, is likelier there
     than a thin wall)."""
-    import cljn_addon.core.sheets as sheets
-
-    sigma = 0.01
-    _, noisy_sheet, out_sheet, normals_sheet, _ = _wall(38400, 0.0, sigma, seed=10)
-    _, noisy_wall, out_wall, normals_wall, _ = _wall(1600, 0.0125, sigma, seed=11)
-    place = np.array([0.2, 1.0, 1.0]), np.array([3.0, 0.0, 0.0])   # a strip beside the sheet
-    noisy = np.r_[noisy_sheet, noisy_wall * place[0] + place[1]]
-    out = np.r_[out_sheet, out_wall * place[0] + place[1]]
-    normals = np.r_[normals_sheet, normals_wall]
+    noisy, out, normals = _sheet_beside_wall(38400, 1600, 0.0125, wall_scale=(0.2, 1.0, 1.0))   # a strip
     res, side = split_merged_walls(noisy, out, normals)
     assert not side.any() and np.array_equal(res, out)
     # The gate is what holds it: without it the strip (and only the strip) is split.
@@ -159,11 +152,26 @@ def test_one_noisy_sheet_and_walls_kept_apart_are_left_alone():
     assert np.abs(res - out).max() < 2 * sigma
 
 
+def test_a_wall_four_sigma_thick_kept_apart_is_left_alone(monkeypatch):
+    """A slab 4.2 sigma thick (a gear at 2% noise) that the passes denoised onto its nearer
+    face: the ~2% of points whose noise crossed the middle went to the other face, which
+    flattens the heights' tails (kurtosis ~2.8), but the faces were never merged."""
+    rng = np.random.default_rng(12)
+    sigma, half, n = 0.01, 0.021, 20000
+    xy = rng.uniform(-0.25, 0.25, (n, 2))
+    noisy = np.c_[xy, np.where(rng.random(n) < 0.5, half, -half)] + rng.normal(scale=sigma, size=(n, 3))
+    out = np.c_[noisy[:, :2], np.where(noisy[:, 2] >= 0, half, -half) + rng.normal(scale=0.1 * sigma, size=n)]
+    normals = np.tile([0.0, 0.0, 1.0], (n, 1))
+    res, side = split_merged_walls(noisy, out, normals)
+    assert not side.any() and np.array_equal(res, out)
+    # The other face along the normal is what tells: without looking for it, all of it splits.
+    monkeypatch.setattr(sheets, "OPPOSITE_STEPS", ())
+    assert (sheets.split_merged_walls(noisy, out, normals)[1] != 0).mean() > 0.9
+
+
 def test_heights_stored_on_a_grid_are_not_taken_for_two_faces(monkeypatch):
     """A LAS file at 1 cm over a scan with ~1 cm of noise: the heights come in a few levels,
     flat-topped like two faces, but in bands along the surface (plane.laz: 5 distinct z)."""
-    import cljn_addon.core.sheets as sheets
-
     rng = np.random.default_rng(7)
     sigma, step = 0.01, 0.03
     xy = rng.uniform(-1, 1, (20000, 2))

@@ -153,6 +153,17 @@ LOCAL_NEIGHBOURS = 200                # the local face offset a: input spread ov
 SIDE_NEIGHBOURS = 8                   # nearest along the sheet whose sides are compared
 SPLIT_MAX_AGREEMENT = 0.54            # two faces: neighbours on the point's own side 50% of the time (scans: 0.61)
 SPLIT_MIN_SHARE = 0.05                # split only where >= 5% of the cloud merged (see below)
+# A wall a few sigma thick whose faces the passes kept apart (a gear 4 sigma thick at 2%
+# noise) has flat-topped heights too: the noise tails that crossed to the nearer face land in
+# the shoulders (whole-cloud kurtosis 2.91, z 4.3 at 50K points); the fourth moment feels
+# that up to faces ~8 sigma apart. Such a wall's other face shows in the output along the
+# normal; a merged wall has none. Points with output 1.25-9.25 height standard deviations
+# along their normal, either way, are left out of the tests and the split.
+OPPOSITE_STEPS = np.arange(2.25, 8.3, 1.0)   # probe ball centres along the normal (overlapping)
+OPPOSITE_PROBE = 1.0                   # probe ball radius
+OPPOSITE_MIN_POINTS = 3                # outputs in a probe that make a face
+OPPOSITE_SAMPLE = 50_000               # points probed; the rest take their nearest probed point's answer
+MIN_POOL_SHARE = 0.25                  # a local pool tested only if this share of it is usable
 SPLIT_CHUNK = 50_000                  # points per neighbour query (bounds memory)
 
 
@@ -193,37 +204,60 @@ def _merged_sheet(p, q, tree, cancel=None):
     return sheet, axis, height, same
 
 
-def _flat_topped(q, tree, height, same, rng):
-    """(centres, found, noise variance, by_whole): pool centres where the input heights are
-    flat-topped and their sides mixed along the sheet (two faces), tested on pools of
-    SPLIT_POOLS points, smallest first; by_whole marks those only the whole-cloud pool found."""
+def _opposite_face(q, tree, axis, spread, rng, cancel=None):
+    """(N,) bool: points with another output face OPPOSITE_STEPS x spread away along their
+    sheet's normal `axis`, either way (a wall the passes kept apart). Probed on a random
+    sample of OPPOSITE_SAMPLE points: such walls span many points."""
+    probed = np.sort(rng.choice(len(q), size=min(OPPOSITE_SAMPLE, len(q)), replace=False))
+    opposite = np.zeros(len(probed), bool)
+    for part in _chunks(len(probed), cancel):
+        rows = probed[part]
+        for step in OPPOSITE_STEPS:
+            for way in (1.0, -1.0):
+                probe = q[rows] + (way * step * spread) * axis[rows]
+                count = tree.query_ball_point(probe, OPPOSITE_PROBE * spread, return_length=True, workers=-1)
+                opposite[part] |= np.asarray(count) >= OPPOSITE_MIN_POINTS
+    if len(probed) == len(q):
+        return opposite
+    return opposite[np.asarray(cKDTree(q[probed]).query(q, workers=-1)[1])]
+
+
+def _flat_topped(q, tree, height, same, usable, rng):
+    """(centres, found, noise variance, by_whole): pool centres where the input heights of the
+    usable points are flat-topped and their sides mixed along the sheet (two faces), tested on
+    pools of SPLIT_POOLS points, smallest first; by_whole marks those only the whole-cloud
+    pool found."""
     centres = rng.choice(len(q), size=min(SPLIT_CENTRES, len(q)), replace=False)
     found = np.zeros(len(centres), bool)
     by_whole = np.zeros(len(centres), bool)
     noise_var = np.zeros(len(centres))
+    candidates = np.flatnonzero(usable)
     for pool in SPLIT_POOLS:
         whole = pool >= len(q) or pool == SPLIT_POOLS[-1]
         if whole:
-            # The whole cloud (or a random sample of it) as one pool.
-            members = rng.choice(len(q), size=min(pool, len(q)), replace=False)[None, :]
+            # The whole cloud's usable points (or a random sample of them) as one pool.
+            members = rng.choice(candidates, size=min(pool, len(candidates)), replace=False)[None, :]
         else:
             members = _neighbours(tree, q[centres], pool)
+        w = usable[members].astype(np.float64)
+        count = np.maximum(w.sum(axis=1), 1.0)
         h = height[members]
-        h = h - h.mean(axis=1, keepdims=True)
-        m2 = np.maximum(np.mean(h ** 2, axis=1), 1e-300)
-        kurtosis = np.mean(h ** 4, axis=1) / m2 ** 2
-        z = (3.0 - kurtosis) / np.sqrt(24.0 / members.shape[1])
+        h = h - (np.sum(w * h, axis=1) / count)[:, None]
+        m2 = np.maximum(np.sum(w * h ** 2, axis=1) / count, 1e-150)
+        kurtosis = np.sum(w * h ** 4, axis=1) / count / m2 ** 2
+        z = (3.0 - kurtosis) / np.sqrt(24.0 / count)
         r = np.sqrt(np.clip(3.0 - kurtosis, 0.0, None) / 2.0)
         # Two faces are sampled independently: along the sheet, a point's nearest neighbours
         # lie on its side half the time. Heights stored on a grid (a LAS file at 1 cm, a range
         # scanner's depth steps) are flat-topped too, but in bands: neighbours agree (0.61).
-        mixed = same[members].mean(axis=1) < SPLIT_MAX_AGREEMENT
+        mixed = (np.sum(w * same[members], axis=1) / count < SPLIT_MAX_AGREEMENT) & (
+            count >= MIN_POOL_SHARE * members.shape[1])
         least_z, least_r = (SPLIT_Z_CLOUD, SPLIT_MIN_R_CLOUD) if whole else (SPLIT_Z, SPLIT_MIN_R)
         new = np.broadcast_to((z > least_z) & (r > least_r) & mixed, found.shape) & ~found
         noise_var[new] = np.broadcast_to(m2 * (1.0 - r), found.shape)[new]
         found |= new
         by_whole |= new & whole
-        if members.shape[1] >= len(q) or found.all():
+        if whole or found.all():
             break
     return centres, found, noise_var, by_whole
 
@@ -249,11 +283,16 @@ def split_merged_walls(original, denoised, normals, seed=0, cancel=None):
     sheet, n, height_in, same = _merged_sheet(p, q, tree, cancel)
     facing = np.where(np.einsum("ij,ij->i", n, normals) < 0, -1, 1).astype(np.int8)  # sides reported along `normals`
     height_out = np.einsum("ij,ij->i", q - sheet, n)
-    centres, found, noise_var, by_whole = _flat_topped(q, tree, height_in, same, rng)
+    # Walls whose faces the passes kept apart are no evidence of merged ones (OPPOSITE_STEPS).
+    spread = 1.4826 * float(np.median(np.abs(height_in - np.median(height_in))))   # robust sd
+    usable = ~_opposite_face(q, tree, n, spread, rng, cancel)
+    if usable.sum() < SPLIT_POOLS[0]:
+        return q, side
+    centres, found, noise_var, by_whole = _flat_topped(q, tree, height_in, same, usable, rng)
     if not found.any():
         return q, side
     nearest = np.asarray(cKDTree(q[centres]).query(q, workers=-1)[1])
-    rows = np.flatnonzero(found[nearest])
+    rows = np.flatnonzero(found[nearest] & usable)
     # Per point of a two-face region: the faces' mid height and offset a from the local input
     # spread (less the pool's noise), and whether the output merged them there.
     mid, offset = np.zeros(len(q)), np.zeros(len(q))
