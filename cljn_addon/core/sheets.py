@@ -161,7 +161,12 @@ SPLIT_MIN_SHARE = 0.05                # split only where >= 5% of the cloud merg
 # along their normal, either way, are left out of the tests and the split.
 OPPOSITE_STEPS = np.arange(2.25, 8.3, 1.0)   # probe ball centres along the normal (overlapping)
 OPPOSITE_PROBE = 1.0                   # probe ball radius
-OPPOSITE_MIN_POINTS = 3                # outputs in a probe that make a face
+# A face: a probe holds OPPOSITE_FACE_SHARE of the outputs that the same ball around the point
+# holds, and at least OPPOSITE_MIN_POINTS. A partly merged wall's other face (~1 sd away: a
+# plate at 0.6% after one pass) reaches the nearest probe with its tail only; at 3 points that
+# tail counted and the plate went unsplit (Chamfer 2.35 -> 3.00).
+OPPOSITE_FACE_SHARE = 0.3
+OPPOSITE_MIN_POINTS = 8
 OPPOSITE_SAMPLE = 50_000               # points probed; the rest take their nearest probed point's answer
 MIN_POOL_SHARE = 0.25                  # a local pool tested only if this share of it is usable
 SPLIT_CHUNK = 50_000                  # points per neighbour query (bounds memory)
@@ -206,17 +211,20 @@ def _merged_sheet(p, q, tree, cancel=None):
 
 def _opposite_face(q, tree, axis, spread, rng, cancel=None):
     """(N,) bool: points with another output face OPPOSITE_STEPS x spread away along their
-    sheet's normal `axis`, either way (a wall the passes kept apart). Probed on a random
+    sheet's normal `axis`, either way (a wall the passes kept apart): a probe ball holding
+    OPPOSITE_FACE_SHARE of what the same ball around the point holds. Probed on a random
     sample of OPPOSITE_SAMPLE points: such walls span many points."""
     probed = np.sort(rng.choice(len(q), size=min(OPPOSITE_SAMPLE, len(q)), replace=False))
     opposite = np.zeros(len(probed), bool)
     for part in _chunks(len(probed), cancel):
         rows = probed[part]
+        own = np.asarray(tree.query_ball_point(q[rows], OPPOSITE_PROBE * spread, return_length=True, workers=-1))
+        least = np.maximum(OPPOSITE_FACE_SHARE * own, OPPOSITE_MIN_POINTS)
         for step in OPPOSITE_STEPS:
             for way in (1.0, -1.0):
                 probe = q[rows] + (way * step * spread) * axis[rows]
                 count = tree.query_ball_point(probe, OPPOSITE_PROBE * spread, return_length=True, workers=-1)
-                opposite[part] |= np.asarray(count) >= OPPOSITE_MIN_POINTS
+                opposite[part] |= np.asarray(count) >= least
     if len(probed) == len(q):
         return opposite
     return opposite[np.asarray(cKDTree(q[probed]).query(q, workers=-1)[1])]
