@@ -13,11 +13,10 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .patches import PatchSource, make_patches, pca_frames
-from .sheets import fit_two_sheets, quadric_design
+from .sheets import MAD_TO_SIGMA, fit_two_sheets, quadric_design
 
 NOISE_SAMPLE = 4_000           # patches the estimate is taken over (random centres)
 NOISE_PATCH_POINTS = 256
-MAD_TO_SIGMA = 1.4826          # median |x| of a Gaussian is 0.6745 sigma
 DISPLACEMENT_BOUND_SIGMAS = 3.0
 SHEET_FIT_ROUNDS = 4
 MIN_FIT_POINTS = 16

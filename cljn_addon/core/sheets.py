@@ -170,6 +170,7 @@ OPPOSITE_MIN_POINTS = 8
 OPPOSITE_SAMPLE = 50_000               # points probed; the rest take their nearest probed point's answer
 MIN_POOL_SHARE = 0.25                  # a local pool tested only if this share of it is usable
 SPLIT_CHUNK = 50_000                  # points per neighbour query (bounds memory)
+MAD_TO_SIGMA = 1.4826                 # median |x| of a Gaussian is 0.6745 sigma (also noise.py's)
 
 
 def _chunks(count, cancel=None):
@@ -217,13 +218,13 @@ def _opposite_face(q, tree, axis, spread, rng, cancel=None):
     probed = np.sort(rng.choice(len(q), size=min(OPPOSITE_SAMPLE, len(q)), replace=False))
     opposite = np.zeros(len(probed), bool)
     for part in _chunks(len(probed), cancel):
-        rows = probed[part]
-        own = np.asarray(tree.query_ball_point(q[rows], OPPOSITE_PROBE * spread, return_length=True, workers=-1))
+        centre, along = q[probed[part]], spread * axis[probed[part]]
+        own = np.asarray(tree.query_ball_point(centre, OPPOSITE_PROBE * spread, return_length=True, workers=-1))
         least = np.maximum(OPPOSITE_FACE_SHARE * own, OPPOSITE_MIN_POINTS)
         for step in OPPOSITE_STEPS:
             for way in (1.0, -1.0):
-                probe = q[rows] + (way * step * spread) * axis[rows]
-                count = tree.query_ball_point(probe, OPPOSITE_PROBE * spread, return_length=True, workers=-1)
+                count = tree.query_ball_point(centre + (way * step) * along, OPPOSITE_PROBE * spread,
+                                              return_length=True, workers=-1)
                 opposite[part] |= np.asarray(count) >= least
     if len(probed) == len(q):
         return opposite
@@ -292,7 +293,7 @@ def split_merged_walls(original, denoised, normals, seed=0, cancel=None):
     facing = np.where(np.einsum("ij,ij->i", n, normals) < 0, -1, 1).astype(np.int8)  # sides reported along `normals`
     height_out = np.einsum("ij,ij->i", q - sheet, n)
     # Walls whose faces the passes kept apart are no evidence of merged ones (OPPOSITE_STEPS).
-    spread = 1.4826 * float(np.median(np.abs(height_in - np.median(height_in))))   # robust sd
+    spread = MAD_TO_SIGMA * float(np.median(np.abs(height_in - np.median(height_in))))   # robust sd
     usable = ~_opposite_face(q, tree, n, spread, rng, cancel)
     if usable.sum() < SPLIT_POOLS[0]:
         return q, side
