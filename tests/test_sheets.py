@@ -184,3 +184,34 @@ def test_heights_stored_on_a_grid_are_not_taken_for_two_faces(monkeypatch):
     # The kurtosis alone would take it for two faces: it is the side test that tells.
     monkeypatch.setattr(sheets, "SPLIT_MAX_AGREEMENT", 1.01)
     assert (sheets.split_merged_walls(noisy, cleaned, normals)[1] != 0).mean() > 0.5
+
+
+def _merged_tube(n, radius, half_thickness, sigma, seed):
+    """A tube wall (radius +- half_thickness faces, length 1) and a stand-in for its denoised
+    cloud merged onto the mid radius: (noisy, merged, outward normals)."""
+    rng = np.random.default_rng(seed)
+    angle, z = rng.uniform(0, 2 * np.pi, n), rng.uniform(0, 1, n)
+    outward = np.c_[np.cos(angle), np.sin(angle), np.zeros(n)]
+    face = np.where(rng.random(n) < 0.5, 1.0, -1.0)
+    clean = (radius + face * half_thickness)[:, None] * outward + np.c_[np.zeros((n, 2)), z]
+    noisy = clean + rng.normal(scale=sigma, size=clean.shape)
+    merged = (radius + rng.normal(scale=0.1 * sigma, size=n))[:, None] * outward + np.c_[np.zeros((n, 2)), noisy[:, 2]]
+    return noisy, merged, outward
+
+
+def test_a_tightly_bent_merged_wall_keeps_the_narrow_sheet(monkeypatch):
+    """A tube 6 sigma in radius, its wall 1.5 sigma thick: a sheet fitted over a point's 128
+    nearest outputs cuts the bend, and only a quarter splits. Of the two scales the narrow one
+    shows the faces better (flatter-topped heights) and is kept."""
+    sigma, radius, half = 0.01, 0.06, 0.0075
+    noisy, merged, outward = _merged_tube(20000, radius, half, sigma, seed=3)
+
+    def face_error(points):
+        return np.abs(np.abs(np.hypot(points[:, 0], points[:, 1]) - radius) - half).mean() / sigma
+
+    out, side = split_merged_walls(noisy, merged, outward)
+    assert (side != 0).mean() > 0.6
+    assert face_error(out) < 0.35 < face_error(merged)          # merged: 0.75 sigma off its faces
+    monkeypatch.setattr(sheets, "SHEET_SCALES", (128,))
+    out_wide, side_wide = split_merged_walls(noisy, merged, outward)
+    assert (side_wide != 0).mean() < 0.4 and face_error(out_wide) > 0.45

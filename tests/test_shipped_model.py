@@ -115,8 +115,8 @@ def test_walls_kept_apart_at_2_percent_are_not_split_and_merged_ones_are(shipped
     """50K points at 2% noise. The gear (4.2 sigma thick) comes out with its faces apart, but
     the noise tails that crossed its middle flatten the heights (whole-cloud kurtosis 2.91):
     before the other face was looked for along the normal, 82% of it was split, Chamfer 6.3
-    -> 14.7. The L-bracket's walls merge (29.6, input 29.8) and are split (8.8; before, not
-    found: kurtosis 2.93)."""
+    -> 14.7. The L-bracket's walls merge (29.6, input 29.8) and are split (7.9 with the wider
+    merged sheet, 8.8 with 64 outputs; before the other face was looked for, not found)."""
     noisy, clean, _ = sample_shape("gear", 50000, noise=0.02, seed=1)
     res = denoise(noisy, shipped, iterations="auto")
     assert res.split_share == 0
@@ -125,7 +125,19 @@ def test_walls_kept_apart_at_2_percent_are_not_split_and_merged_ones_are(shipped
     res = denoise(noisy, shipped, iterations="auto")
     assert res.split_share > 0.6
     best_filter = min(chamfer(pca_projection_filter(noisy, k), clean) for k in (40, 60, 100, 150))
-    assert chamfer(res.points, clean) < 1.2 * best_filter                        # 8.8 vs 7.9
+    assert chamfer(res.points, clean) < 1.1 * best_filter                        # 7.9 vs 7.9 (64-point sheet: 8.8)
+
+
+def test_a_merged_seat_is_found_where_the_output_ripples(shipped):
+    """The stool at 1.5% and 50K points: its seat (1.5 sigma thick) merges, but the merged
+    sheet of a point's 64 nearest outputs follows the output's ripples, and the seat's two
+    faces did not show (not split, Chamfer 8.5). The wider sheet (sheets.SHEET_SCALES) finds
+    them: split ~50%, 4.9, below the best plane filter (5.6)."""
+    noisy, clean, _ = sample_shape("stool", 50000, noise=0.015, seed=1)
+    res = denoise(noisy, shipped, iterations="auto")
+    assert res.split_share > 0.3
+    best_filter = min(chamfer(pca_projection_filter(noisy, k), clean) for k in (40, 60, 100, 150))
+    assert chamfer(res.points, clean) < best_filter                              # 4.9 vs 5.6
 
 
 def test_stool_seat_and_legs_come_out_cleaner_at_0_6_percent(shipped):
