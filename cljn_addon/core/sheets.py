@@ -198,17 +198,19 @@ def _neighbours(tree, points, k):
     return np.asarray(tree.query(points, k=min(k, tree.n), workers=-1)[1]).reshape(len(points), -1)
 
 
-def _sheet_fit(p, q, tree, k, cancel=None):
-    """Per point: centroid and PCA normal of its k nearest outputs, and the input's height over
-    them."""
-    sheet, axis, height = np.empty_like(q), np.empty_like(q), np.empty(len(q))
+def _sheet_fits(p, q, tree, scales, cancel=None):
+    """Per scale k: (centroid, PCA normal) of each point's k nearest outputs and the input's
+    height over them; one neighbour query at the largest k serves every scale (nearest first)."""
+    fits = [(np.empty_like(q), np.empty_like(q), np.empty(len(q))) for _ in scales]
     for part in _chunks(len(q), cancel, SHEET_CHUNK):
-        nb = q[_neighbours(tree, q[part], k)]
-        sheet[part] = nb.mean(axis=1)
-        d = nb - sheet[part, None]
-        axis[part] = np.linalg.eigh(np.matmul(d.transpose(0, 2, 1), d))[1][:, :, 0]
-        height[part] = np.einsum("ij,ij->i", p[part] - sheet[part], axis[part])
-    return sheet, axis, height
+        nearest = q[_neighbours(tree, q[part], max(scales))]
+        for k, (sheet, axis, height) in zip(scales, fits):
+            nb = nearest[:, :k]
+            sheet[part] = nb.mean(axis=1)
+            d = nb - sheet[part, None]
+            axis[part] = np.linalg.eigh(np.matmul(d.transpose(0, 2, 1), d))[1][:, :, 0]
+            height[part] = np.einsum("ij,ij->i", p[part] - sheet[part], axis[part])
+    return fits
 
 
 def _kurtosis(x):
@@ -221,7 +223,7 @@ def _merged_sheet(p, q, tree, cancel=None):
     SHEET_SCALES, the one whose input heights are the most flat-topped), the input's height
     over it, and the share of its SIDE_NEIGHBOURS nearest along the sheet (among its SIDE_POOL
     nearest outputs) whose input lay on the same side of it."""
-    fits = [_sheet_fit(p, q, tree, k, cancel) for k in SHEET_SCALES]
+    fits = _sheet_fits(p, q, tree, SHEET_SCALES, cancel)
     sheet, axis, height = min(fits, key=lambda fit: _kurtosis(fit[2]))
     same = np.empty(len(q))
     for part in _chunks(len(q), cancel, SHEET_CHUNK):
