@@ -73,3 +73,17 @@ def test_evaluate_reports_the_sign_ceiling_beside_sign(result):
     table = format_table(result)
     assert "sign ok (ceiling)" in table
     assert f"({shapes['thin_plate']['sign_ceiling'] * 100:.1f}%)" in table
+
+
+def test_known_noise_hands_the_engine_the_true_sigma():
+    """eval --known-noise: each cloud is denoised with noise_sigma = its level (the engine's
+    reading is then exactly that), and the table says so; the default run estimates it."""
+    torch.manual_seed(0)
+    shapes = [("box", *shape_mesh("box"))]
+    model = build_model("tiny").eval()
+    given = evaluate(shapes, model, levels=(0.01,), n_points=3000, iterations=1, log=lambda m: None,
+                     tune=False, known_noise=True)
+    blind = evaluate(shapes, model, levels=(0.01,), n_points=3000, iterations=1, log=lambda m: None, tune=False)
+    assert given["levels"][0]["shapes"][0]["noise_sigma_est"] == 0.01
+    assert blind["levels"][0]["shapes"][0]["noise_sigma_est"] != 0.01
+    assert "--known-noise" in format_table(given) and "--known-noise" not in format_table(blind)

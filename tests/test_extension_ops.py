@@ -499,6 +499,8 @@ def test_operator_and_command_line_give_identical_results(bx):
     bx.settings.iterations = 2
     bx.settings.patch_radius = 5.0
     bx.settings.orientation = "OUTWARD"
+    bx.settings.use_known_noise = True          # world units, as the command line's --noise
+    bx.settings.noise_sigma = 0.004
     scene_in, scene_out = bx.tmp / "anchor_in.blend", bx.tmp / "anchor_out.blend"
     assert bpy.ops.wm.save_as_mainfile(filepath=str(scene_in), copy=True) == {"FINISHED"}
 
@@ -506,11 +508,14 @@ def test_operator_and_command_line_give_identical_results(bx):
     names = ("position", bx.normal_attr, "cljn_normal", "cljn_displacement", "cljn_outlier")
     by_operator = {n: bx.attribute(obj, n).copy() for n in names}
     assert not np.array_equal(by_operator["position"], local.astype(np.float32)), "nothing moved"
+    moved = np.linalg.norm(bx.world_points(obj) - noisy, axis=1)
+    assert moved.max() <= 3 * 0.004 * (1 + 1e-4), "the given scanner noise did not bound the motion"
 
     env = dict(os.environ, PYTHONDONTWRITEBYTECODE="1")
     proc = subprocess.run(
         [sys.executable, str(REPO / "standalone" / "run.py"), "denoise", str(scene_in), "-o", str(scene_out),
          "--model", bx.model_file("tiny"), "--iterations", "2", "--patch-radius", "5", "--orient", "outward",
+         "--noise", "0.004",
          "--threads", str(torch.get_num_threads()), "--no-progress"],
         capture_output=True, text=True, env=env, cwd=REPO, timeout=300)
     assert proc.returncode == 0, proc.stdout + proc.stderr

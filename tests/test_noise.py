@@ -61,6 +61,44 @@ def test_denoise_never_moves_a_point_beyond_the_bound():
     assert free.displacement.max() > tight.displacement.max()
 
 
+def test_a_given_scanner_noise_replaces_the_estimate():
+    """--noise / Known Scanner Noise: the pass count, the stop, the motion bound and the
+    refinement's reach follow the given sigma, not the cloud's estimate."""
+    torch.manual_seed(0)
+    noisy, _, _ = sample_shape("stepped_block", 6000, noise=0.01, seed=6)
+    model = build_model("tiny").eval()
+    estimated = denoise(noisy, model, iterations=2)
+    assert 0.005 < estimated.noise_sigma < 0.02
+    given = denoise(noisy, model, iterations=2, noise_sigma=0.002)
+    assert given.noise_sigma == 0.002
+    assert np.isclose(given.displacement_bound, DISPLACEMENT_BOUND_SIGMAS * 0.002)
+    assert given.displacement.max() <= given.displacement_bound * (1 + 1e-9)
+    assert estimated.displacement.max() > given.displacement_bound     # the estimate would allow more
+    # auto plans passes from sigma / patch radius: 1 pass at a tiny given noise, the paper's 4 at a large one
+    assert denoise(noisy, model, iterations="auto", noise_sigma=0.001).iterations == 1
+    loud = denoise(noisy, model, iterations="auto", noise_sigma=0.05)
+    assert loud.iterations == 4 and not loud.stopped_early      # the stop is 1.15 x 0.05: never reached here
+
+
+@pytest.mark.parametrize("value", [0.0, -0.01, float("nan"), float("inf"), "loud"])
+def test_a_bad_scanner_noise_is_refused(value):
+    from cljn_addon.core.options import DenoiseOptions
+
+    noisy, _, _ = sample_shape("box", 500, noise=0.01, seed=6)
+    with pytest.raises(InputError, match="noise sigma must be a positive number"):
+        denoise(noisy, build_model("tiny").eval(), noise_sigma=value)
+    with pytest.raises(InputError, match="scanner noise must be a positive distance"):
+        DenoiseOptions(noise_sigma=value)
+
+
+def test_scanner_noise_reaches_the_engine_only_when_moving_points():
+    from cljn_addon.core.options import DenoiseOptions
+
+    assert DenoiseOptions(noise_sigma=0.003).engine_kwargs()["noise_sigma"] == 0.003
+    assert "noise_sigma" not in DenoiseOptions().engine_kwargs()
+    assert "noise_sigma" not in DenoiseOptions(noise_sigma=0.003, normals_only=True).engine_kwargs()
+
+
 def test_bad_displacement_bound_is_refused():
     noisy, _, _ = sample_shape("box", 500, noise=0.01, seed=6)
     with pytest.raises(InputError, match="max displacement"):

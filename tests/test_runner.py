@@ -191,6 +191,26 @@ def test_denoise_ply_keeps_properties_and_moves_points(tmp_path, model_path, tor
     assert ", 1 pass, " in captured.out
 
 
+def test_a_given_scanner_noise_is_used_and_reported(tmp_path, model_path, torus, capsys):
+    """--noise: the engine takes the given sigma (motion bound 3 x it), and the line and the
+    report say it was given."""
+    src = tmp_path / "scan.xyz"
+    np.savetxt(src, torus, fmt="%.17g")
+    out, report = tmp_path / "clean.xyz", tmp_path / "r.json"
+    code = command_line.main(["denoise", str(src), "-o", str(out), "--report", str(report), "--noise", "0.0025",
+                              *map(str, _base_args(model_path))])
+    captured = capsys.readouterr()
+    assert code == 0, captured.err
+    data = json.loads(report.read_text())
+    entry = data["inputs"][0]
+    assert data["options"]["noise"] == 0.0025
+    assert entry["noise_sigma"] == 0.0025 and entry["noise_given"] is True
+    assert entry["displacement_bound"] == pytest.approx(0.0075)
+    moved = np.linalg.norm(np.loadtxt(out) - torus, axis=1)
+    assert moved.max() <= 0.0075 * (1 + 1e-6)
+    assert "given noise 0.0025" in captured.out
+
+
 def test_in_place_keeps_a_backup(tmp_path, model_path, torus, capsys):
     src = tmp_path / "c.xyz"
     np.savetxt(src, torus, fmt="%.17g")
@@ -312,6 +332,8 @@ def test_missing_and_mismatched_model_exit_2(tmp_path, model_path, torus):
     (["denoise", "a.ply"], "one of the arguments -o/--output --out-dir --in-place is required"),
     (["denoise", "a.ply", "-o", "c.ply", "--iterations", "0"], "must be at least 1"),
     (["denoise", "a.ply", "-o", "c.ply", "--patch-radius", "200"], "at most 100"),
+    (["denoise", "a.ply", "-o", "c.ply", "--noise", "0"], "above 0"),
+    (["denoise", "a.ply", "-o", "c.ply", "--noise", "nan"], "--noise"),
     (["frobnicate"], "invalid choice"),
 ])
 def test_usage_errors_exit_2(tmp_path, args, message, capsys, monkeypatch):

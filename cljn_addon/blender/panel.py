@@ -49,6 +49,10 @@ class VIEW3D_PT_cljn_denoise(bpy.types.Panel):
         row.enabled = not settings.auto_iterations
         row.prop(settings, "iterations")
         col.prop(settings, "patch_radius")
+        col.prop(settings, "use_known_noise")
+        row = col.row()
+        row.enabled = settings.use_known_noise
+        row.prop(settings, "noise_sigma")
         col.prop(settings, "orientation")
         col.prop(settings, "device")
         col.prop(settings, "backend")

@@ -136,11 +136,18 @@ def _panel_or_preferences(context, settings, name, to_core) -> str:
     return to_core[key]
 
 
+def _typed_distance(value: float) -> float:
+    """The decimal the user typed: a FloatProperty is single precision (0.004 reads back as
+    0.0040000002), and the panel should run exactly as `--noise 0.004` does."""
+    return float(f"{value:.7g}")
+
+
 def options_from_settings(context, settings, normals_only=False) -> DenoiseOptions:
     """The panel's settings (scene.cljn_denoise) as engine options; InputError with a plain
     message when they cannot be used (no camera, missing model file...)."""
     return DenoiseOptions(iterations="auto" if settings.auto_iterations else settings.iterations,
                           patch_radius_fraction=settings.patch_radius / 100.0,
+                          noise_sigma=_typed_distance(settings.noise_sigma) if settings.use_known_noise else None,
                           device=_panel_or_preferences(context, settings, "device", DEVICE_TO_CORE),
                           backend=_panel_or_preferences(context, settings, "backend", BACKEND_TO_CORE),
                           normals_only=normals_only,

@@ -49,6 +49,15 @@ class CLJN_PG_settings(bpy.types.PropertyGroup):
         name="Patch Radius", default=5.0, min=0.1, max=50.0, soft_min=1.0, soft_max=20.0,
         subtype="PERCENTAGE", precision=1,
         description="Neighbourhood radius in % of the bounding-box diagonal of the cloud (world space)")
+    use_known_noise: BoolProperty(
+        name="Known Scanner Noise", default=False,
+        description="Use the scanner's noise you give below instead of estimating it from the cloud. "
+                    "Tick it when fine relief (carving, texture) reads as noise and gets smoothed away")
+    noise_sigma: FloatProperty(
+        name="Scanner Noise", default=0.001, min=0.0, soft_max=0.1, subtype="DISTANCE", unit="LENGTH",
+        precision=5,
+        description="The scanner's noise, one standard deviation, in world units (a spec sheet's range "
+                    "precision); sets the pass count, the stop and the motion bound")
     orientation: EnumProperty(name="Orientation", items=ORIENTATIONS, default="OUTWARD")
     device: EnumProperty(name="Device", items=PANEL_DEVICES, default="PREFERENCES")
     backend: EnumProperty(name="Backend", items=PANEL_BACKENDS, default="PREFERENCES")

@@ -47,7 +47,8 @@ def options_from_args(args) -> DenoiseOptions:
         patch_radius_fraction=None if args.patch_radius is None else args.patch_radius / 100.0,
         orientation=args.orient, viewpoint=args.viewpoint, device=args.device, seed=args.seed,
         normals_only=args.command == "normals", model_path=args.model,
-        max_displacement=getattr(args, "max_displacement", None), backend=args.backend)
+        max_displacement=getattr(args, "max_displacement", None), backend=args.backend,
+        noise_sigma=getattr(args, "noise", None))
 
 
 def _same_file(a: Path, b: Path) -> bool:
@@ -265,8 +266,9 @@ class CloudCommand:
         seconds = float(getattr(res, "seconds", 0.0) or 0.0)
         sigma = float(getattr(res, "noise_sigma", float("nan")))
         bound = float(getattr(res, "displacement_bound", float("inf")))
-        details = (f"estimated noise {sigma:.4g} (no point moved more than {bound:.4g}), "
-                 if math.isfinite(sigma) else "")
+        given = getattr(self.options, "noise_sigma", None) is not None
+        details = (f"{'given' if given else 'estimated'} noise {sigma:.4g} (no point moved more than {bound:.4g}), "
+                   if math.isfinite(sigma) else "")
         thin = bool(getattr(res, "thin_walled", False))
         if thin:
             details += "thin-walled (own-side patches), "
@@ -284,7 +286,7 @@ class CloudCommand:
             line += f" -> {output}"
         out(line)
         return {"points": n, "outliers": outliers, "mean_displacement": disp,
-                "noise_sigma": sigma if math.isfinite(sigma) else None,
+                "noise_sigma": sigma if math.isfinite(sigma) else None, "noise_given": given,
                 "displacement_bound": bound if math.isfinite(bound) else None,
                 "thin_walled": thin, "split_share": round(split, 4), "passes": passes, "stopped_by_noise": stopped,
                 "seconds": round(seconds, 3), "ran_on": ran_on}

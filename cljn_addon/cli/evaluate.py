@@ -28,6 +28,9 @@ def main(argv=None):
                         help="skip the thin-part block (plate, open box, tube, L-bracket, stool)")
     parser.add_argument("--thin-only", action="store_true", help="only the thin-part block")
     parser.add_argument("--no-tune", action="store_true", help="fixed-k baselines (fast)")
+    parser.add_argument("--known-noise", action="store_true",
+                        help="give the engine each cloud's true noise sigma (as `denoise --noise` does) "
+                             "instead of letting it estimate the noise; the default run is blind")
     parser.add_argument("--json", default=None, help="also write the full result as JSON")
     parser.add_argument("--threads", type=int, default=None)
     args = parser.parse_args(argv)
@@ -57,7 +60,8 @@ def main(argv=None):
     for name, shapes in blocks.items():
         print(f"== {name} ({len(shapes)} shapes)", flush=True)
         results[name] = evaluate(shapes, model, [x / 100 for x in args.levels], args.points, args.iterations,
-                                 log=lambda m: print(m, flush=True), tune=not args.no_tune)
+                                 log=lambda m: print(m, flush=True), tune=not args.no_tune,
+                                 known_noise=args.known_noise)
     for name, result in results.items():
         print(f"\n## {name}\n\n{format_table(result)}")
     if args.json:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import importlib.util
+import math
 import os
 from dataclasses import dataclass
 
@@ -51,7 +52,8 @@ class DenoiseOptions:
     normals_only: estimate normals, positions untouched (core.estimate_normals).
     backend: 'auto', 'torch' or 'numpy' (see resolve_backend).
     max_displacement: cap on how far any point moves (cloud units); None for 3 x the noise
-    sigma estimated from the cloud."""
+    sigma estimated from the cloud. noise_sigma: the scanner's noise (standard deviation, cloud
+    units) when the user knows it, in place of the estimate; None to estimate it."""
 
     iterations: int | str = "auto"     # or a whole number
     patch_radius_fraction: float | None = None
@@ -63,6 +65,7 @@ class DenoiseOptions:
     model_path: str | None = None
     max_displacement: float | None = None
     backend: str = "auto"
+    noise_sigma: float | None = None
 
     def __post_init__(self):
         if self.orientation not in ORIENTATIONS:
@@ -70,6 +73,14 @@ class DenoiseOptions:
                              f"choose one of {', '.join(ORIENTATIONS)}")
         if self.viewpoint is not None:
             object.__setattr__(self, "viewpoint", tuple(float(v) for v in self.viewpoint))
+        if self.noise_sigma is not None:
+            try:
+                sigma = float(self.noise_sigma)
+            except (TypeError, ValueError):
+                sigma = float("nan")
+            if not (math.isfinite(sigma) and sigma > 0):
+                raise InputError(f"scanner noise must be a positive distance, got {self.noise_sigma!r}")
+            object.__setattr__(self, "noise_sigma", sigma)
         if (self.backend or "auto").lower() not in BACKENDS:
             raise InputError(f"unknown backend {self.backend!r}; choose one of {', '.join(BACKENDS)}")
 
@@ -84,6 +95,8 @@ class DenoiseOptions:
             kwargs["iterations"] = self.iterations
             if self.max_displacement is not None:
                 kwargs["max_displacement"] = self.max_displacement
+            if self.noise_sigma is not None:
+                kwargs["noise_sigma"] = self.noise_sigma
         if self.patch_radius_fraction is not None:
             kwargs["patch_radius_fraction"] = self.patch_radius_fraction
         return kwargs

@@ -76,8 +76,10 @@ def _classic_filters(clouds, prepared, tune):
 
 
 def evaluate(shapes, model, levels=TEST_NOISE_LEVELS, n_points=50_000, iterations=4, seed=0,
-             log=print, tune=True):
-    """shapes: list of (name, vertices, faces). Returns a dict of per-level rows and means."""
+             log=print, tune=True, known_noise=False):
+    """shapes: list of (name, vertices, faces). Returns a dict of per-level rows and means.
+    known_noise: hand the engine the true sigma (`noise_sigma`), as a user who knows the
+    scanner's noise would; by default it estimates the noise from each cloud."""
     prepared = []
     for i, (name, v, f) in enumerate(shapes):
         v, f, clean, normals = prepare_shape(v, f, n_points, seed + i)
@@ -101,7 +103,8 @@ def evaluate(shapes, model, levels=TEST_NOISE_LEVELS, n_points=50_000, iteration
         for si, (cloud, shape) in enumerate(zip(clouds, prepared)):
             pca_n = pca_normals(cloud, k_pca)
             t0 = time.time()
-            res = denoise(cloud, model, iterations=iterations, orientation="outward", seed=seed)
+            res = denoise(cloud, model, iterations=iterations, orientation="outward", seed=seed,
+                          noise_sigma=level if known_noise else None)
             seconds = time.time() - t0
             sharp = shape["sharp"]
             floor_n, ceiling_n = floor_and_ceiling_normals(cloud, shape["v"], shape["f"], level)
@@ -145,7 +148,7 @@ def evaluate(shapes, model, levels=TEST_NOISE_LEVELS, n_points=50_000, iteration
         rows.append(row)
     scalar = [k for k, v in rows[0].items() if isinstance(v, float) and k != "level"]
     mean = {key: float(np.mean([r[key] for r in rows])) for key in scalar}
-    return {"levels": rows, "mean": mean, "points": n_points, "iterations": iterations,
+    return {"levels": rows, "mean": mean, "points": n_points, "iterations": iterations, "known_noise": known_noise,
             "filters": list(rows[0]["k_filters"]), "shapes": [s["name"] for s in prepared],
             "open_shapes": [s["name"] for s in prepared if not s["closed"]]}
 
@@ -203,7 +206,8 @@ def format_table(result) -> str:
     open_note = (f" Open or inconsistently wound (no sign truth): {', '.join(result['open_shapes'])}."
                  if result.get("open_shapes") else "")
     m = result["mean"]
-    lines += ["", f"{result['points']} points per shape, {result['iterations']} iterations; shapes: "
+    given = " (the engine given the true noise sigma: --known-noise)" if result.get("known_noise") else ""
+    lines += ["", f"{result['points']} points per shape, {result['iterations']} iterations{given}; shapes: "
               f"{', '.join(names)}.{open_note}",
               "MSAE floor: the least origin-MSAE any method can reach on these clouds (metrics.msae_floor_normals); "
               "sign ceiling: the most sign agreement any method can reach (metrics.sign_ceiling_normals).",
