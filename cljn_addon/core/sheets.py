@@ -173,13 +173,15 @@ SPLIT_MIN_SHARE = 0.05                # split only where >= 5% of the cloud merg
 OPPOSITE_STEPS = np.arange(2.25, 8.3, 1.0)   # probe ball centres along the normal (overlapping)
 OPPOSITE_PROBE = 1.0                   # probe ball radius
 # A face: a probe holds OPPOSITE_FACE_SHARE of the outputs that the same ball around the point
-# holds (a face through the probe's middle holds about as many), and at least
-# OPPOSITE_MIN_POINTS. A partly merged wall's other face (~1 sd away: a plate at 0.6% after one
-# pass) reaches the nearest probe with its tail only; counted at 3 points whatever the ball
-# held, that tail left the plate unsplit (Chamfer 2.35 -> 3.00). A fixed floor of 8 was too
-# many where the ball itself holds ~8 (an L-bracket 3.7 sigma thick at 0.8% and 50K points:
-# its kept-apart walls went unseen, 34% was split, Chamfer 3.14 -> 3.68, sign 95% -> 80%).
-OPPOSITE_FACE_SHARE = 0.5
+# holds, and at least OPPOSITE_MIN_POINTS. A partly merged wall's other face (~1 sd away: a
+# plate at 0.6% after one pass) reaches the nearest probe with its tail only; counted at 3
+# points whatever the ball held, that tail left the plate unsplit (Chamfer 2.35 -> 3.00). A
+# fixed floor of 8 was too many where the ball itself holds ~8 (an L-bracket 3.7 sigma thick at
+# 0.8% and 50K points: its kept-apart walls went unseen, 34% was split, Chamfer 3.14 -> 3.68,
+# sign 95% -> 80%). At 0.5x the stool's merged seat at 1.5% went unsplit (legs under the seat
+# read as a far face: Chamfer 4.91 -> 8.54); 0.3x with a floor of 3 missed the L-bracket's far
+# face at 0.6% (7% split, 2.37 -> 2.47).
+OPPOSITE_FACE_SHARE = 0.4
 OPPOSITE_MIN_POINTS = 3
 OPPOSITE_SAMPLE = 50_000               # points probed; the rest take their nearest probed point's answer
 MIN_POOL_SHARE = 0.25                  # a local pool tested only if this share of it is usable
