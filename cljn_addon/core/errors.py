@@ -17,6 +17,20 @@ class ModelMismatchError(ValueError):
     """A weights file does not match its JSON config (names the mismatch)."""
 
 
+def positive_number(value, message: str) -> float:
+    """value as a finite float above 0, or an InputError with `message` (a format string
+    given the value's repr as {!r})."""
+    import math
+
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        number = float("nan")
+    if not (math.isfinite(number) and number > 0):
+        raise InputError(message.format(value))
+    return number
+
+
 def user_message(exc: BaseException) -> str | None:
     """The plain message of an error the user can fix or chose (None: an internal error).
 

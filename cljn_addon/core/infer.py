@@ -13,7 +13,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .config import INFLATION_NEIGHBOURS, LRMA_NEIGHBOURS, MIN_BALL_POINTS, ORIENTATIONS
-from .errors import Cancelled, InputError
+from .errors import Cancelled, InputError, positive_number
 from .noise import DISPLACEMENT_BOUND_SIGMAS, THIN_WALLED_SHARE, clamp_displacement, estimate_noise, surface_noise_sigma
 from .orient import orient_normals
 from .patches import PatchSource, bbox_diagonal, from_frame, make_patches
@@ -225,13 +225,7 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
         if iterations < 1:
             raise InputError(f"iterations must be at least 1, got {iterations}")
     if noise_sigma is not None:
-        try:
-            given_sigma = float(noise_sigma)
-        except (TypeError, ValueError):
-            given_sigma = float("nan")
-        if not (np.isfinite(given_sigma) and given_sigma > 0):
-            raise InputError(f"noise sigma must be a positive number, got {noise_sigma!r}")
-        noise_sigma = given_sigma
+        noise_sigma = positive_number(noise_sigma, "noise sigma must be a positive number, got {!r}")
     if patch_radius is not None and not (np.isfinite(patch_radius) and patch_radius > 0):
         raise InputError(f"patch radius must be a positive number, got {patch_radius!r}")
     fraction = patch_radius_fraction or model.config.patch_radius_fraction

@@ -8,12 +8,11 @@ from __future__ import annotations
 
 import dataclasses
 import importlib.util
-import math
 import os
 from dataclasses import dataclass
 
 from .config import BACKENDS, ORIENTATIONS
-from .errors import InputError
+from .errors import InputError, positive_number
 
 _model_cache: dict = {}     # (path, mtime) -> loaded network; one model at a time
 
@@ -74,13 +73,8 @@ class DenoiseOptions:
         if self.viewpoint is not None:
             object.__setattr__(self, "viewpoint", tuple(float(v) for v in self.viewpoint))
         if self.noise_sigma is not None:
-            try:
-                sigma = float(self.noise_sigma)
-            except (TypeError, ValueError):
-                sigma = float("nan")
-            if not (math.isfinite(sigma) and sigma > 0):
-                raise InputError(f"scanner noise must be a positive distance, got {self.noise_sigma!r}")
-            object.__setattr__(self, "noise_sigma", sigma)
+            object.__setattr__(self, "noise_sigma", positive_number(
+                self.noise_sigma, "scanner noise must be a positive distance, got {!r}"))
         if (self.backend or "auto").lower() not in BACKENDS:
             raise InputError(f"unknown backend {self.backend!r}; choose one of {', '.join(BACKENDS)}")
 
