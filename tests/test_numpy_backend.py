@@ -29,7 +29,7 @@ def _agreement(points, torch_model, numpy_model):
     out = []
     for model, mixed in ((torch_model, False), (numpy_model, True)):
         predict, chunk, _ = predictor(model, "cpu", mixed_precision=mixed)
-        out.append(network_pass(predict, chunk, points, radius, np.random.default_rng(0), 128))
+        out.append(network_pass(predict, chunk, points, radius, np.random.default_rng(0), 128)[:2])
     (d_t, n_t), (d_n, n_n) = out
     angle = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", n_t, n_n), -1, 1)))
     return float(angle.max()), float(np.abs(d_t - d_n).max() / radius)

@@ -211,6 +211,24 @@ def test_a_given_scanner_noise_is_used_and_reported(tmp_path, model_path, torus,
     assert "given noise 0.0025" in captured.out
 
 
+def test_points_on_rods_are_reported(tmp_path, model_path, capsys):
+    """A pole: the line and the report give the share whose normals came from the rod's section."""
+    rng = np.random.default_rng(4)
+    side = rng.integers(0, 4, 3000)
+    across = rng.uniform(-0.015, 0.015, 3000)
+    pole = np.c_[rng.uniform(-0.5, 0.5, 3000), np.choose(side, [np.full(3000, 0.015), np.full(3000, -0.015), across, across]),
+                 np.choose(side, [across, across, np.full(3000, 0.015), np.full(3000, -0.015)])]
+    np.savetxt(tmp_path / "pole.xyz", pole + rng.normal(scale=0.002, size=pole.shape), fmt="%.17g")
+    report = tmp_path / "r.json"
+    code = command_line.main(["denoise", str(tmp_path / "pole.xyz"), "-o", str(tmp_path / "out.xyz"),
+                              "--report", str(report), "--noise", "0.002",
+                              *map(str, _base_args(model_path))])
+    captured = capsys.readouterr()
+    assert code == 0, captured.err
+    assert json.loads(report.read_text())["inputs"][0]["rod_share"] > 0.5
+    assert "on rods (normals from the rod's section)" in captured.out
+
+
 def test_in_place_keeps_a_backup(tmp_path, model_path, torus, capsys):
     src = tmp_path / "c.xyz"
     np.savetxt(src, torus, fmt="%.17g")

@@ -275,6 +275,9 @@ class CloudCommand:
         split = float(getattr(res, "split_share", 0.0) or 0.0)
         if split > 0:
             details += f"{split:.1%} on merged thin walls put back on their own face, "
+        rods = float(getattr(res, "rod_share", 0.0) or 0.0)
+        if rods > 0:
+            details += f"{rods:.1%} on rods (normals from the rod's section), "
         passes = int(getattr(res, "iterations", 0))
         stopped = bool(getattr(res, "stopped_early", False))
         details += f"{passes} pass{'es' if passes != 1 else ''}" + (" (stopped: moved as far as the noise), " if stopped else ", ")
@@ -288,7 +291,8 @@ class CloudCommand:
         return {"points": n, "outliers": outliers, "mean_displacement": disp,
                 "noise_sigma": sigma if math.isfinite(sigma) else None, "noise_given": given,
                 "displacement_bound": bound if math.isfinite(bound) else None,
-                "thin_walled": thin, "split_share": round(split, 4), "passes": passes, "stopped_by_noise": stopped,
+                "thin_walled": thin, "split_share": round(split, 4), "rod_share": round(rods, 4),
+                "passes": passes, "stopped_by_noise": stopped,
                 "seconds": round(seconds, 3), "ran_on": ran_on}
 
     def _keep_preview(self, job, label, before, res):

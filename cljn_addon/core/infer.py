@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -16,8 +17,9 @@ from .config import INFLATION_NEIGHBOURS, LRMA_NEIGHBOURS, MIN_BALL_POINTS, ORIE
 from .errors import Cancelled, InputError, positive_number
 from .noise import DISPLACEMENT_BOUND_SIGMAS, THIN_WALLED_SHARE, clamp_displacement, estimate_noise, surface_noise_sigma
 from .orient import orient_normals
-from .patches import PatchSource, bbox_diagonal, from_frame, make_patches
+from .patches import PatchSource, bbox_diagonal, framed_patches, from_frame
 from .refine import inflation, lrma_update
+from .rods import RodNormals, section_radius
 from .sheets import split_merged_walls
 
 ACTIVATION_BUDGET = 100_000_000   # floats per forward chunk: bounds memory on any cloud size
@@ -36,6 +38,7 @@ class DenoiseResult:
     thin_walled: bool = False                # handled as a thin-walled object (own-sheet patches)
     split_share: float = 0.0                 # share of points put back on their own face of a merged thin wall
     stopped_early: bool = False              # auto iterations stopped: points had moved as far as the noise
+    rod_share: float = 0.0                   # share of points on rods, normals from the rod's section
     ran_on: str = ""                         # device and backend, e.g. "cpu (numpy)"
 
 
@@ -97,25 +100,34 @@ def predictor(model, device="auto", mixed_precision=True):
     return predict, _chunk_size(model), f"{dev.type} (torch)"
 
 
+class NetworkPass(NamedTuple):
+    displacement: np.ndarray  # (N, 3) world units
+    normals: np.ndarray       # (N, 3) unit, sign arbitrary
+    rod_section: np.ndarray   # (N,) RMS radius of the rod's section where the patch held one, else 0
+
+
 def network_pass(predict, chunk, points, radius, rng, points_per_patch, report=None, cancel=None,
-                 own_sheet=False):
+                 own_sheet=False) -> NetworkPass:
     """Displacement (world units) and unit normal for every point, from its patch
-    (own_sheet: see `patches.make_patches`)."""
+    (own_sheet: see `patches.make_patches`), and which patches had no normal axis."""
     source = PatchSource(points, radius, points_per_patch, rng)
     disp = np.empty_like(points)
     normals = np.empty_like(points)
+    section = np.zeros(len(points))
     for start in range(0, len(points), chunk):
         if cancel is not None and cancel.is_set():
             raise Cancelled("cancelled")
         stop = min(start + chunk, len(points))
-        patches, frames, _ = make_patches(source, points[start:stop], rng, own_sheet)
+        local, _ = source.gather(points[start:stop], rng)
+        section[start:stop] = section_radius(local) * radius  # the whole ball, before own-sheet patches
+        patches, frames = framed_patches(local, rng, own_sheet)
         d, n = predict(patches)
         disp[start:stop] = from_frame(np.asarray(d, np.float64), frames) * radius
         normals[start:stop] = from_frame(np.asarray(n, np.float64), frames)
         if report is not None:
             report(stop / len(points))
     normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
-    return disp, normals
+    return NetworkPass(disp, normals, section)
 
 
 # Inflation and LRMA neighbours further than this many noise sigmas from a point's tangent
@@ -173,7 +185,8 @@ def estimate_normals(points, model, **options):
 def _run(points, model, iterations, *, move_points, patch_radius=None, patch_radius_fraction=None,
          points_per_patch=None, orientation="outward", viewpoint=None,
          device="auto", progress=None, cancel=None, seed=0, refine=True, max_displacement=None,
-         normal_motion_only=True, own_sheet="auto", split_walls=True, on_iteration=None, noise_sigma=None):
+         normal_motion_only=True, own_sheet="auto", split_walls=True, on_iteration=None, noise_sigma=None,
+         rod_normals=True):
     """The engine behind `denoise` (move_points=True) and `estimate_normals` (False).
 
     points: (N, 3) array, any units. patch_radius: absolute radius; otherwise
@@ -200,6 +213,11 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
     (`sheets.split_merged_walls`; with outward orientation its normal faces that side).
     on_iteration(iteration, points): called after each moving pass with the whole cloud as it
     then stands (input coordinates and order), for studies such as tools/iteration_study.py.
+    rod_normals (ours, default True): where a pass's patch held a rod's whole cross-section (a
+    chair leg, a pole: `rods.section_radius`), the network's normal has no axis to follow; the
+    normal comes from the rod's section in the input instead (`rods.section_normals`), and the
+    pass moves the point along it. rod_share in the result: the share of points whose final
+    normal came from a section.
     noise_sigma: the scanner's noise (standard deviation, cloud units) when the user knows it;
     it replaces both estimates (`noise.estimate_noise` for the pass count, the motion bound and
     the refinement's reach; `noise.surface_noise_sigma` for the stop). A surface with relief at
@@ -280,6 +298,19 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
     sheet_offset = (sheet_sigmas * sigma if (max_displacement is None or auto_iterations or noise_sigma is not None)
                     and np.isfinite(sigma) and sigma > 0 else None)
     normals = None
+    rod_fits = RodNormals(original[inliers], radius0, seed=seed + 1, cancel=cancel) if rod_normals else None
+    rods = np.zeros(len(current), bool)
+    rod_sigma = [sigma]
+
+    def on_rods(normals, section):
+        """Where the pass's patch held a rod's whole section (no normal axis): the section's
+        normal (`rods.RodNormals`), in place; the rows as a bool mask."""
+        if rod_fits is None or not section.any():
+            return np.zeros(len(section), bool)
+        if not np.isfinite(rod_sigma[0]):      # normals only, or a bound given with own_sheet=False
+            rod_sigma[0] = estimate_noise(current, radius0, seed=seed).sigma
+        return rod_fits.apply(normals, section, rod_sigma[0])
+
     for it in range(iterations):
         radius = patch_radius or fraction * bbox_diagonal(current)
         base = it / iterations
@@ -287,13 +318,15 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
         def net_report(f, it=it, base=base):
             report(base + 0.85 * f / iterations, f"iteration {it + 1}/{iterations}: network {int(f * 100)}%")
 
-        disp, new_normals = network_pass(predict, chunk, current, radius, rng, points_per_patch,
-                                         net_report, cancel, own_sheet)
+        disp, new_normals, section = network_pass(predict, chunk, current, radius, rng, points_per_patch,
+                                                  net_report, cancel, own_sheet)
         if normals is not None:
             # Keep the sign of the previous iteration's normal (the network's is unoriented).
             flip = np.einsum("ij,ij->i", new_normals, normals) < 0
             new_normals[flip] *= -1
         normals = new_normals
+        # Before the motion: a rod's points then move along their section's normal.
+        rods = on_rods(normals, section)
         if not move_points:
             break
         if normal_motion_only:
@@ -322,9 +355,11 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
         # The last moving pass took its normals on the points before it; a pass on the cleaned
         # points gives better ones (l_bracket at 0.6%: MSAE 0.166 -> 0.139; stool 0.420 -> 0.368),
         # and costs less than the passes auto iterations left out.
-        new_normals = network_pass(predict, chunk, current, radius, rng, points_per_patch, None, cancel, own_sheet)[1]
+        _, new_normals, section = network_pass(predict, chunk, current, radius, rng, points_per_patch, None, cancel,
+                                               own_sheet)
         new_normals[np.einsum("ij,ij->i", new_normals, normals) < 0] *= -1
         normals = new_normals
+        rods = on_rods(normals, section)
 
     side = np.zeros(len(current), np.int8)
     if move_points and split_walls:
@@ -359,4 +394,5 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
     return DenoiseResult(points=out_points, normals=all_normals.astype(np.float32), outliers=outliers,
                          displacement=displacement, seconds=time.time() - t0, iterations=iterations,
                          noise_sigma=sigma, displacement_bound=bound, ran_on=ran_on, thin_walled=thin_walled,
-                         stopped_early=stopped_early, split_share=float(np.mean(side != 0)) if len(side) else 0.0)
+                         stopped_early=stopped_early, split_share=float(np.mean(side != 0)) if len(side) else 0.0,
+                         rod_share=float(np.mean(rods)) if len(rods) else 0.0)

@@ -147,6 +147,11 @@ def make_patches(source: PatchSource, centres: np.ndarray, rng: np.random.Genera
     are replaced by points of the centre's own side (`sheets.own_sheet_patches`) and the
     frame is taken again from what is left."""
     local, counts = source.gather(centres, rng)
+    return (*framed_patches(local, rng, own_sheet), counts)
+
+
+def framed_patches(local: np.ndarray, rng: np.random.Generator, own_sheet=False):
+    """`make_patches` on gathered balls (`PatchSource.gather`): (patches, frames)."""
     frames = pca_frames(local)
     if own_sheet:
         from .sheets import own_sheet_patches
@@ -154,4 +159,4 @@ def make_patches(source: PatchSource, centres: np.ndarray, rng: np.random.Genera
         local, fit = own_sheet_patches(local, to_frame(local, frames), rng)
         if fit["two"].any():
             frames[fit["two"]] = pca_frames(local[fit["two"]])
-    return to_frame(local, frames).astype(np.float32), frames, counts
+    return to_frame(local, frames).astype(np.float32), frames
