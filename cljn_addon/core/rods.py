@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .errors import Cancelled
 from .patches import PatchSource
 
 # Rod-like patch (the network's 128-point patch, spreads about its mean): smallest / middle
@@ -37,11 +38,12 @@ SECTION_REACH_SIGMAS = 5.0
 SECTION_CHUNK = 20_000   # balls per batch (bounds memory: 20K x 500 x 3 floats)
 
 
-def _spreads(points):
-    """Eigenvalues (ascending) and eigenvectors of each (M, n, 3) set's covariance about its mean."""
-    x = np.asarray(points, np.float64)
-    x = x - x.mean(axis=1, keepdims=True)
-    return np.linalg.eigh(np.einsum("mni,mnj->mij", x, x) / x.shape[1] + np.eye(3) * 1e-12)
+def _covariance(points):
+    """(M, 3, 3) covariance of each (M, n, 3) set about its own mean (float64; batched matmul)."""
+    x = np.asarray(points)
+    mean = x.mean(axis=1)
+    cov = np.matmul(x.transpose(0, 2, 1), x) / x.shape[1] - mean[:, :, None] * mean[:, None, :]
+    return cov.astype(np.float64) + np.eye(3) * 1e-12
 
 
 def section_radius(patches) -> np.ndarray:
@@ -49,11 +51,8 @@ def section_radius(patches) -> np.ndarray:
     axis because it holds a rod's section; 0 where it does not."""
     if len(patches) == 0:
         return np.zeros(0)
-    # Per pass on every patch: float32 sums (the ratios need no more), float64 eigenvalues.
-    x = np.asarray(patches, np.float32)
-    mean = x.mean(axis=1)
-    cov = np.matmul(x.transpose(0, 2, 1), x) / x.shape[1] - mean[:, :, None] * mean[:, None, :]
-    w = np.linalg.eigvalsh(cov.astype(np.float64) + np.eye(3) * 1e-12)
+    # Per pass on every patch: float32 sums are enough for the ratios.
+    w = np.linalg.eigvalsh(_covariance(np.asarray(patches, np.float32)))
     rod = (w[:, 0] > ROD_ROUNDNESS * w[:, 1]) & (w[:, 1] < ROD_ELONGATION * w[:, 2])
     return np.where(rod, np.sqrt(w[:, 0] + w[:, 1]), 0.0)
 
@@ -77,12 +76,10 @@ def section_normals(cloud, centres, radius, rng, n=SECTION_POINTS, cancel=None, 
     source = PatchSource(cloud, radius, n, rng)
     for start in range(0, len(centres), SECTION_CHUNK):
         if cancel is not None and cancel.is_set():
-            from .errors import Cancelled
-
             raise Cancelled("cancelled")
         local, _ = source.gather(centres[start:start + SECTION_CHUNK], rng)
         x = local.astype(np.float64)
-        w, v = _spreads(x)
+        w, v = np.linalg.eigh(_covariance(x))
         axis = v[:, :, 2]
         # The view along the axis, relative to the centre.
         seen = x - np.einsum("mni,mi->mn", x, axis)[:, :, None] * axis[:, None, :]
