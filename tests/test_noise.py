@@ -91,12 +91,13 @@ def test_a_bad_scanner_noise_is_refused(value):
         DenoiseOptions(noise_sigma=value)
 
 
-def test_scanner_noise_reaches_the_engine_only_when_moving_points():
+def test_scanner_noise_reaches_the_engine_in_both_modes():
+    """Moving points: the pass count, the stop, the bound; normals only: the posterior's reach."""
     from cljn_addon.core.options import DenoiseOptions
 
     assert DenoiseOptions(noise_sigma=0.003).engine_kwargs()["noise_sigma"] == 0.003
     assert "noise_sigma" not in DenoiseOptions().engine_kwargs()
-    assert "noise_sigma" not in DenoiseOptions(noise_sigma=0.003, normals_only=True).engine_kwargs()
+    assert DenoiseOptions(noise_sigma=0.003, normals_only=True).engine_kwargs()["noise_sigma"] == 0.003
 
 
 def test_bad_displacement_bound_is_refused():

@@ -211,6 +211,22 @@ def test_a_given_scanner_noise_is_used_and_reported(tmp_path, model_path, torus,
     assert "given noise 0.0025" in captured.out
 
 
+def test_normals_take_a_given_scanner_noise_and_leave_positions_alone(tmp_path, model_path, torus, capsys):
+    """normals --noise: the posterior's reach; nothing moves, so the line states no motion bound."""
+    src = tmp_path / "scan.xyz"
+    np.savetxt(src, torus, fmt="%.17g")
+    out, report = tmp_path / "n.xyz", tmp_path / "r.json"
+    code = command_line.main(["normals", str(src), "-o", str(out), "--report", str(report), "--noise", "0.0025",
+                              *map(str, _base_args(model_path))])
+    captured = capsys.readouterr()
+    assert code == 0, captured.err
+    entry = json.loads(report.read_text())["inputs"][0]
+    assert entry["noise_sigma"] == 0.0025 and entry["noise_given"] is True
+    assert entry["displacement_bound"] is None
+    assert np.array_equal(np.loadtxt(out), torus)
+    assert "given noise 0.0025, " in captured.out and "no point moved" not in captured.out
+
+
 def test_points_on_rods_are_reported(tmp_path, model_path, capsys):
     """A pole: the line and the report give the share whose normals came from the rod's section."""
     rng = np.random.default_rng(4)

@@ -57,7 +57,8 @@ class CLJN_PG_settings(bpy.types.PropertyGroup):
         name="Scanner Noise", default=0.001, min=0.0, soft_max=0.1, subtype="DISTANCE", unit="LENGTH",
         precision=5,
         description="The scanner's noise, one standard deviation, in world units (a spec sheet's range "
-                    "precision); sets the pass count, the stop and the motion bound")
+                    "precision); sets the pass count, the stop and the motion bound, and how far round each point "
+                    "Estimate Normals looks for the surface it came from")
     orientation: EnumProperty(name="Orientation", items=ORIENTATIONS, default="OUTWARD")
     device: EnumProperty(name="Device", items=PANEL_DEVICES, default="PREFERENCES")
     backend: EnumProperty(name="Backend", items=PANEL_BACKENDS, default="PREFERENCES")

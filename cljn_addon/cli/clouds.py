@@ -267,7 +267,8 @@ class CloudCommand:
         sigma = float(getattr(res, "noise_sigma", float("nan")))
         bound = float(getattr(res, "displacement_bound", float("inf")))
         given = getattr(self.options, "noise_sigma", None) is not None
-        details = (f"{'given' if given else 'estimated'} noise {sigma:.4g} (no point moved more than {bound:.4g}), "
+        details = (f"{'given' if given else 'estimated'} noise {sigma:.4g}"
+                   + (f" (no point moved more than {bound:.4g}), " if math.isfinite(bound) else ", ")
                    if math.isfinite(sigma) else "")
         thin = bool(getattr(res, "thin_walled", False))
         if thin:

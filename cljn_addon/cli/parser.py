@@ -127,11 +127,15 @@ def _add_cloud_options(p: argparse.ArgumentParser, normals_only: bool):
         eng.add_argument("--max-displacement", type=_positive_float, metavar="DISTANCE",
                          help="no point moves further than this, in the cloud's units (default: "
                               "3 x the noise level estimated from the cloud)")
-        eng.add_argument("--noise", type=_positive_float, metavar="DISTANCE",
-                         help="the scanner's noise (standard deviation) in the cloud's units, when you "
-                              "know it (a spec sheet's range precision): used in place of the estimate "
-                              "for the pass count, the stop and the motion bound. Give it when fine "
-                              "relief reads as noise and gets smoothed away (default: estimated)")
+    eng.add_argument("--noise", type=_positive_float, metavar="DISTANCE",
+                     help=("the scanner's noise (standard deviation) in the cloud's units, when you know it "
+                           "(a spec sheet's range precision): how far round each point its surface may lie, "
+                           "for the normal of the surface it came from (default: estimated)"
+                           if normals_only else
+                           "the scanner's noise (standard deviation) in the cloud's units, when you "
+                           "know it (a spec sheet's range precision): used in place of the estimate "
+                           "for the pass count, the stop and the motion bound. Give it when fine "
+                           "relief reads as noise and gets smoothed away (default: estimated)"))
     eng.add_argument("--orient", choices=ORIENTATIONS, default="outward",
                      help="normal orientation (default outward)")
     eng.add_argument("--viewpoint", type=_finite, nargs=3, metavar=("X", "Y", "Z"),

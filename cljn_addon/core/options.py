@@ -89,8 +89,8 @@ class DenoiseOptions:
             kwargs["iterations"] = self.iterations
             if self.max_displacement is not None:
                 kwargs["max_displacement"] = self.max_displacement
-            if self.noise_sigma is not None:
-                kwargs["noise_sigma"] = self.noise_sigma
+        if self.noise_sigma is not None:
+            kwargs["noise_sigma"] = self.noise_sigma
         if self.patch_radius_fraction is not None:
             kwargs["patch_radius_fraction"] = self.patch_radius_fraction
         return kwargs

@@ -54,7 +54,7 @@ def section_radius(patches) -> np.ndarray:
     # Per pass on every patch: float32 sums are enough for the ratios.
     w = np.linalg.eigvalsh(_covariance(np.asarray(patches, np.float32)))
     rod = (w[:, 0] > ROD_ROUNDNESS * w[:, 1]) & (w[:, 1] < ROD_ELONGATION * w[:, 2])
-    return np.where(rod, np.sqrt(w[:, 0] + w[:, 1]), 0.0)
+    return np.where(rod, np.sqrt(np.maximum(w[:, 0] + w[:, 1], 0.0)), 0.0)  # eigvalsh: -1e-9 on a flat patch
 
 
 def resolved_rods(section, sigma) -> np.ndarray:

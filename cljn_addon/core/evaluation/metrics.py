@@ -4,6 +4,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ..origin import karcher_axes
 from .shapes import face_normals_and_areas, sample_mesh
 
 
@@ -135,25 +136,6 @@ def _origin_posterior(noisy, vertices, faces, sigma, k, chunk, seed):
         yield slice(s, s + chunk), w, surface_n[idx]
 
 
-def _karcher_axis(w, nb, steps):
-    """Per point, the weighted spherical (Karcher) mean of the unsigned normals nb (M, k, 3)."""
-    # Start from the principal axis of the weighted normals, then Karcher steps.
-    _, vecs = np.linalg.eigh(np.einsum("mk,mka,mkb->mab", w, nb, nb))
-    n = vecs[:, :, -1]
-    for _ in range(steps):
-        c = np.einsum("mc,mkc->mk", n, nb)
-        aligned = nb * np.where(c < 0, -1.0, 1.0)[..., None]
-        c = np.minimum(np.abs(c), 1.0)
-        theta = np.arccos(c)
-        tangent = aligned - c[..., None] * n[:, None, :]                # length sin(theta)
-        scale = np.where(theta > 1e-7, theta / np.maximum(np.sin(theta), 1e-12), 1.0)
-        v = np.einsum("mk,mkc->mc", w * scale, tangent)                 # mean of log maps
-        length = np.linalg.norm(v, axis=1, keepdims=True)
-        n = np.cos(length) * n + np.sin(length) * v / np.maximum(length, 1e-12)
-        n /= np.linalg.norm(n, axis=1, keepdims=True)
-    return n
-
-
 def _likeliest_side(w, nb):
     """Per point, the direction the weighted oriented normals nb (M, k, 3) agree with most, of
     three: their mean (the bisector at an edge) and both ways of their principal axis."""
@@ -171,7 +153,7 @@ def floor_and_ceiling_normals(noisy, vertices, faces, sigma, k=400, steps=8, chu
     (the eval needs both for every cloud; the posterior is the expensive part)."""
     floor, ceiling = np.empty((len(noisy), 3)), np.empty((len(noisy), 3))
     for part, w, nb in _origin_posterior(noisy, vertices, faces, sigma, k, chunk, seed):
-        floor[part] = _karcher_axis(w, nb, steps)
+        floor[part] = karcher_axes(w, nb, steps)
         ceiling[part] = _likeliest_side(w, nb)
     return floor, ceiling
 
@@ -188,7 +170,7 @@ def msae_floor_normals(noisy, vertices, faces, sigma, k=400, steps=8, chunk=1000
     """
     out = np.empty((len(noisy), 3))
     for part, w, nb in _origin_posterior(noisy, vertices, faces, sigma, k, chunk, seed):
-        out[part] = _karcher_axis(w, nb, steps)
+        out[part] = karcher_axes(w, nb, steps)
     return out
 
 
