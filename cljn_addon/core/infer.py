@@ -314,7 +314,7 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
         normal (`rods.RodNormals`), in place; the rows as a bool mask."""
         if rod_fits is None or not section.any():
             return np.zeros(len(section), bool)
-        if not np.isfinite(rod_sigma[0]):      # normals only, or a bound given with own_sheet=False
+        if not np.isfinite(rod_sigma[0]):      # a bound given with own_sheet=False
             rod_sigma[0] = estimate_noise(current, radius0, seed=seed).sigma
         return rod_fits.apply(normals, section, rod_sigma[0])
 
