@@ -191,16 +191,22 @@ def test_denoise_ply_keeps_properties_and_moves_points(tmp_path, model_path, tor
     assert ", 1 pass, " in captured.out
 
 
-def test_a_given_scanner_noise_is_used_and_reported(tmp_path, model_path, torus, capsys):
-    """--noise: the engine takes the given sigma (motion bound 3 x it), and the line and the
-    report say it was given."""
+def _run_with_noise(command, tmp_path, model_path, cloud, capsys, noise="0.0025"):
+    """Run `command` on `cloud` with --noise and a report: (output, report path, captured)."""
     src = tmp_path / "scan.xyz"
-    np.savetxt(src, torus, fmt="%.17g")
-    out, report = tmp_path / "clean.xyz", tmp_path / "r.json"
-    code = command_line.main(["denoise", str(src), "-o", str(out), "--report", str(report), "--noise", "0.0025",
+    np.savetxt(src, cloud, fmt="%.17g")
+    out, report = tmp_path / "out.xyz", tmp_path / "r.json"
+    code = command_line.main([command, str(src), "-o", str(out), "--report", str(report), "--noise", noise,
                               *map(str, _base_args(model_path))])
     captured = capsys.readouterr()
     assert code == 0, captured.err
+    return out, report, captured
+
+
+def test_a_given_scanner_noise_is_used_and_reported(tmp_path, model_path, torus, capsys):
+    """--noise: the engine takes the given sigma (motion bound 3 x it), and the line and the
+    report say it was given."""
+    out, report, captured = _run_with_noise("denoise", tmp_path, model_path, torus, capsys)
     data = json.loads(report.read_text())
     entry = data["inputs"][0]
     assert data["options"]["noise"] == 0.0025
@@ -213,13 +219,7 @@ def test_a_given_scanner_noise_is_used_and_reported(tmp_path, model_path, torus,
 
 def test_normals_take_a_given_scanner_noise_and_leave_positions_alone(tmp_path, model_path, torus, capsys):
     """normals --noise: the posterior's reach; nothing moves, so the line states no motion bound."""
-    src = tmp_path / "scan.xyz"
-    np.savetxt(src, torus, fmt="%.17g")
-    out, report = tmp_path / "n.xyz", tmp_path / "r.json"
-    code = command_line.main(["normals", str(src), "-o", str(out), "--report", str(report), "--noise", "0.0025",
-                              *map(str, _base_args(model_path))])
-    captured = capsys.readouterr()
-    assert code == 0, captured.err
+    out, report, captured = _run_with_noise("normals", tmp_path, model_path, torus, capsys)
     entry = json.loads(report.read_text())["inputs"][0]
     assert entry["noise_sigma"] == 0.0025 and entry["noise_given"] is True
     assert entry["displacement_bound"] is None

@@ -274,7 +274,8 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
     if bound is not None and not bound > 0:
         raise InputError(f"max displacement must be a positive number, got {max_displacement!r}")
     thin_walled = False
-    if not move_points or bound is None or auto_iterations or own_sheet == "auto":
+    # Normals only needs sigma alone (the posterior's reach); moving, also how thin-walled it is.
+    if (noise_sigma is None if not move_points else (bound is None or auto_iterations or own_sheet == "auto")):
         report(0.0, "estimating the noise level")
         sigma, two_sheet_share = estimate_noise(current, radius0, seed=seed)
         # Normals only keeps whole-ball patches on thin walls (stool at 0.6%, 50K: MSAE 0.208,

@@ -44,9 +44,9 @@ def karcher_axes(weights, normals, steps=KARCHER_STEPS):
     return axis
 
 
-def posterior_neighbours(surface, sigma, seed=0) -> int:
-    """How many surface points the posterior needs: the median count within its reach."""
-    tree = cKDTree(surface)
+def posterior_neighbours(tree, surface, sigma, seed=0) -> int:
+    """How many surface points (in `tree`, a cKDTree of `surface`) the posterior needs: the
+    median count within its reach."""
     rng = np.random.default_rng(seed)
     probe = surface[rng.choice(len(surface), size=min(COUNT_SAMPLE, len(surface)), replace=False)]
     counts = tree.query_ball_point(probe, REACH_SIGMAS * sigma, return_length=True, workers=-1)
@@ -61,8 +61,9 @@ def origin_normals(points, surface, surface_normals, sigma, seed=0, cancel=None)
     points = np.asarray(points, np.float64)
     if not (np.isfinite(sigma) and sigma > 0) or len(surface) < 2:
         return np.array(surface_normals, np.float64)
-    k = posterior_neighbours(surface, sigma, seed)
     tree = cKDTree(surface)
+    k = posterior_neighbours(tree, surface, sigma, seed)
+    surface_normals = np.asarray(surface_normals, np.float64)
     out = np.empty((len(points), 3))
     for start in range(0, len(points), CHUNK):
         if cancel is not None and cancel.is_set():
@@ -73,7 +74,7 @@ def origin_normals(points, surface, surface_normals, sigma, seed=0, cancel=None)
         # the filtered surface lies many sigmas from the point.
         weights = np.exp(-0.5 * (dist ** 2 - dist[:, :1] ** 2) / sigma ** 2)
         weights /= weights.sum(axis=1, keepdims=True)
-        normals = np.asarray(surface_normals, np.float64)[near]
+        normals = surface_normals[near]
         axes = karcher_axes(weights, normals)
         flip = np.einsum("mk,mk->m", weights, np.einsum("mc,mkc->mk", axes, normals)) < 0
         axes[flip] *= -1
