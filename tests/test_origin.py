@@ -52,3 +52,18 @@ def test_karcher_axes_ignore_signs_and_weigh_the_normals():
     axis = karcher_axes(np.array([[0.4, 0.4, 0.2]]), normals)[0]
     angle = np.degrees(np.arccos(abs(axis @ a)))
     assert abs(angle - 18.0) < 0.5          # the weighted mean angle: 0.2 x 90 degrees from a
+
+
+def test_full_patch_radius_is_the_ball_one_patch_fills_between_its_floors_and_the_ceiling():
+    from cljn_addon.core.infer import MIN_PATCH_RADIUS_SHARE, full_patch_radius
+
+    rng = np.random.default_rng(0)
+    plane = np.c_[rng.uniform(0, 1, (40000, 2)), np.zeros(40000)]      # 40,000 points per unit area
+    expected = np.sqrt(128 / (np.pi * 40000))                           # a disc holding 128 of them
+    radius = full_patch_radius(plane, 128, sigma=1e-4, ceiling=0.04)
+    assert abs(radius - expected) < 0.1 * expected
+    assert full_patch_radius(plane, 128, sigma=0.0175, ceiling=0.04) == 0.035      # 2 sigmas
+    assert full_patch_radius(plane, 128, sigma=1e-4, ceiling=0.2) == MIN_PATCH_RADIUS_SHARE * 0.2
+    assert full_patch_radius(plane, 128, sigma=1e-4, ceiling=0.01) == 0.01
+    assert full_patch_radius(plane, 128, sigma=float("nan"), ceiling=0.04) == radius
+    assert full_patch_radius(plane[:100], 128, sigma=1e-4, ceiling=0.04) == 0.04

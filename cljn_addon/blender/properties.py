@@ -48,7 +48,9 @@ class CLJN_PG_settings(bpy.types.PropertyGroup):
     patch_radius: FloatProperty(
         name="Patch Radius", default=5.0, min=0.1, max=50.0, soft_min=1.0, soft_max=20.0,
         subtype="PERCENTAGE", precision=1,
-        description="Neighbourhood radius in % of the bounding-box diagonal of the cloud (world space)")
+        description="Neighbourhood radius in % of the bounding-box diagonal of the cloud (world space). "
+                    "Estimate Normals takes it as the largest and uses the smaller ball that holds one "
+                    "patch's points on a dense cloud")
     use_known_noise: BoolProperty(
         name="Known Scanner Noise", default=False,
         description="Use the scanner's noise you give below instead of estimating it from the cloud. "

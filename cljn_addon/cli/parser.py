@@ -122,7 +122,8 @@ def _add_cloud_options(p: argparse.ArgumentParser, normals_only: bool):
                            "filtering iterations, or auto (default): 1-4 chosen from the estimated noise, "
                            "stopping once points have moved as far as the noise"))
     eng.add_argument("--patch-radius", type=_percent, metavar="PERCENT",
-                     help="patch radius in percent of the bounding-box diagonal (default 5)")
+                     help="patch radius in percent of the bounding-box diagonal (default 5); "
+                          "for normals, the largest: a dense cloud gets the ball one patch fills")
     if not normals_only:
         eng.add_argument("--max-displacement", type=_positive_float, metavar="DISTANCE",
                          help="no point moves further than this, in the cloud's units (default: "
