@@ -1,0 +1,80 @@
+"""Normals-only mode on the eval's own clouds: origin MSAE per shape and per level, fast.
+
+`eval` scores normals-only mode (`core.estimate_normals`) on the origin-normal metric, but it
+also runs the denoise, every tuned baseline and the floor for each cloud (~15 min a level and
+block here). This rebuilds exactly the clouds of a single-level eval run (`eval --levels L`,
+the same shapes, seeds and order) and runs only normals-only mode on them, so a change to that
+mode can be measured on all ten rows in minutes; `--baselines` adds tuned PCA (k from the
+eval's candidates, shared by the block) and the floor, and with them the gap closed.
+
+  python tools/origin_study.py --block validation --levels 0.6 0.8 1.1 1.5 2.0 [--baselines]
+  python tools/origin_study.py --block thin_parts --levels 0.6
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from cljn_addon import core  # noqa: E402
+from cljn_addon.cli.paths import DEFAULT_VALIDATION_DIR  # noqa: E402
+from cljn_addon.core.evaluation.baselines import pca_normals  # noqa: E402
+from cljn_addon.core.evaluation.evaluate import PCA_K, prepare_shape  # noqa: E402
+from cljn_addon.core.evaluation.metrics import msae, msae_floor_normals  # noqa: E402
+from cljn_addon.core.evaluation.shapes import THIN_SHAPES, shape_mesh  # noqa: E402
+from cljn_addon.core.formats.meshes import find_meshes, read_mesh  # noqa: E402
+
+
+def block_shapes(block, mesh_dir):
+    if block == "thin_parts":
+        return [(name, *shape_mesh(name)) for name in THIN_SHAPES]
+    return [(p.stem, *read_mesh(p)) for p in find_meshes(mesh_dir)]
+
+
+def eval_clouds(shapes, level, n_points, seed=0):
+    """The clouds of `eval --levels level` (a single-level run: level index 0)."""
+    for i, (name, v, f) in enumerate(shapes):
+        v, f, clean, normals = prepare_shape(v, f, n_points, seed + i)
+        rng = np.random.default_rng(seed + i)
+        yield name, v, f, clean + rng.normal(scale=level, size=clean.shape), normals
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--block", choices=("validation", "thin_parts"), default="validation")
+    ap.add_argument("--mesh-dir", default=str(DEFAULT_VALIDATION_DIR))
+    ap.add_argument("--levels", type=float, nargs="+", default=[0.6, 0.8, 1.1, 1.5, 2.0], help="percent")
+    ap.add_argument("--points", type=int, default=50_000)
+    ap.add_argument("--baselines", action="store_true", help="also tuned PCA and the floor (slow)")
+    args = ap.parse_args(argv)
+    model = core.load_model(None)
+    shapes = block_shapes(args.block, args.mesh_dir)
+    for percent in args.levels:
+        level = percent / 100
+        ours, pca, floors = [], {k: [] for k in PCA_K}, []
+        for name, v, f, noisy, normals in eval_clouds(shapes, level, args.points):
+            t0 = time.time()
+            res = core.estimate_normals(noisy, model, orientation="outward", seed=0)
+            ours.append(msae(res.normals, normals))
+            line = f"{percent:.1f}% {name}: normals only {ours[-1]:.4f} ({time.time() - t0:.0f} s)"
+            if args.baselines:
+                for k in PCA_K:
+                    pca[k].append(msae(pca_normals(noisy, k), normals))
+                floors.append(msae(msae_floor_normals(noisy, v, f, level), normals))
+                line += f"; floor {floors[-1]:.4f}"
+            print(line, flush=True)
+        row = f"{args.block} {percent:.1f}%: normals only {np.mean(ours):.4f}"
+        if args.baselines:
+            k = min(PCA_K, key=lambda k: np.mean(pca[k]))
+            p, fl = np.mean(pca[k]), np.mean(floors)
+            row += f", tuned PCA {p:.4f} (k {k}), floor {fl:.4f}, gap closed {(p - np.mean(ours)) / (p - fl):.0%}"
+        print(row, flush=True)
+
+
+if __name__ == "__main__":
+    main()
