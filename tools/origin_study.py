@@ -24,7 +24,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from cljn_addon import core  # noqa: E402
 from cljn_addon.cli.paths import DEFAULT_VALIDATION_DIR  # noqa: E402
 from cljn_addon.core.evaluation.baselines import pca_normals  # noqa: E402
-from cljn_addon.core.evaluation.evaluate import PCA_K, prepare_shape  # noqa: E402
+from cljn_addon.core.evaluation.evaluate import PCA_K, noisy_cloud, prepare_shape  # noqa: E402
 from cljn_addon.core.evaluation.metrics import msae, msae_floor_normals  # noqa: E402
 from cljn_addon.core.evaluation.shapes import THIN_SHAPES, shape_mesh  # noqa: E402
 from cljn_addon.core.formats.meshes import find_meshes, read_mesh  # noqa: E402
@@ -40,8 +40,7 @@ def eval_clouds(shapes, level, n_points, seed=0):
     """The clouds of `eval --levels level` (a single-level run: level index 0)."""
     for i, (name, v, f) in enumerate(shapes):
         v, f, clean, normals = prepare_shape(v, f, n_points, seed + i)
-        rng = np.random.default_rng(seed + i)
-        yield name, v, f, clean + rng.normal(scale=level, size=clean.shape), normals
+        yield name, v, f, noisy_cloud(clean, level, seed, 0, i), normals
 
 
 def main(argv=None):

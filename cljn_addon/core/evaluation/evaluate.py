@@ -56,6 +56,13 @@ def prepare_shape(vertices, faces, n_points, seed):
     return v, f, clean, normals
 
 
+def noisy_cloud(clean, level, seed, level_index, shape_index):
+    """The eval's noisy cloud of one shape at one level (its own seed per level and shape), so
+    a study script can rebuild exactly the clouds of an eval run."""
+    rng = np.random.default_rng(seed + 1000 * level_index + shape_index)
+    return clean + rng.normal(scale=level, size=clean.shape)
+
+
 def _tune(candidates, score):
     """(best candidate, its result list) for score(candidate) -> (mean score, per-shape results)."""
     scored = {k: score(k) for k in candidates}
@@ -89,10 +96,7 @@ def evaluate(shapes, model, levels=TEST_NOISE_LEVELS, n_points=50_000, iteration
                              sharp=sharp_feature_mask(clean, normals), dist=MeshDistance(v, f)))
     rows = []
     for li, level in enumerate(levels):
-        clouds = []
-        for si, shape in enumerate(prepared):
-            rng = np.random.default_rng(seed + 1000 * li + si)
-            clouds.append(shape["clean"] + rng.normal(scale=level, size=shape["clean"].shape))
+        clouds = [noisy_cloud(shape["clean"], level, seed, li, si) for si, shape in enumerate(prepared)]
         # Classic baselines: one neighbourhood size per level, shared by every shape.
         k_pca, _ = _tune(PCA_K if tune else (60,), lambda k: (
             np.mean([msae(pca_normals(c, k), s["normals"]) for c, s in zip(clouds, prepared)]), None))
