@@ -70,9 +70,35 @@ def test_evaluate_reports_the_sign_ceiling_beside_sign(result):
     assert 0.6 < shapes["thin_plate"]["sign_ceiling"] < 0.85
     for s in shapes.values():
         assert s["sign_ours"] <= s["sign_ceiling"] + 0.01
+        assert 0.0 <= s["sign_out"] <= 1.0 and 0.0 <= s["sign_joint"] <= 1.0
     table = format_table(result)
-    assert "sign ok (ceiling)" in table
-    assert f"({shapes['thin_plate']['sign_ceiling'] * 100:.1f}%)" in table
+    assert "sign ours (ceiling)" in table and "sign output" in table
+    assert f"({shapes['thin_plate']['sign_ceiling'] * 100:.1f}%) / {shapes['thin_plate']['sign_out'] * 100:.1f}%" in table
+
+
+def test_each_sign_is_scored_where_its_normals_sit(monkeypatch):
+    """Normals-only mode against the faces of origin, the denoise's normals against the
+    surface nearest their output points. A cube corner's points put back on the other face
+    carry that face's normal: at right angles to their origin's (a miss there), right where
+    they now sit. Stand-ins for the two modes make the difference exact."""
+    import cljn_addon.core.evaluation.evaluate as ev
+
+    v, f = shape_mesh("box")
+
+    def onto_top(points, model, **_):
+        # Every point onto the inside of the box's top face, with the top's normal.
+        out = points * [0.9, 0.9, 0.0]
+        out[:, 2] = v[:, 2].max()
+        return type("R", (), dict(points=out, normals=np.tile([0.0, 0.0, 1.0], (len(points), 1)),
+                                  noise_sigma=0.01, iterations=1))()
+
+    monkeypatch.setattr(ev, "denoise", onto_top)
+    monkeypatch.setattr(ev, "estimate_normals", lambda points, model, **_: type("R", (), dict(
+        normals=np.tile([0.0, 0.0, 1.0], (len(points), 1))))())
+    row = evaluate([("box", v, f)], None, levels=(0.002,), n_points=3000, iterations=1, log=lambda m: None,
+                   tune=False)["levels"][0]["shapes"][0]
+    assert row["sign_out"] == 1.0                       # every output point sits on the top face
+    assert row["sign_joint"] == row["sign_ours"] < 0.4  # only the top's own points agree
 
 
 def test_known_noise_hands_the_engine_the_true_sigma():

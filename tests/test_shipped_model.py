@@ -11,8 +11,8 @@ import pytest
 
 from cljn_addon.core import denoise, estimate_normals, load_model
 from cljn_addon.core.evaluation.baselines import pca_normals, pca_projection_filter
-from cljn_addon.core.evaluation.metrics import chamfer, msae, sign_agreement
-from cljn_addon.core.evaluation.shapes import sample_shape
+from cljn_addon.core.evaluation.metrics import MeshDistance, chamfer, msae, sign_agreement
+from cljn_addon.core.evaluation.shapes import sample_shape, shape_mesh
 from cljn_addon.core.model import DEFAULT_WEIGHTS, config_path_for
 
 
@@ -123,6 +123,10 @@ def test_walls_kept_apart_at_2_percent_are_not_split_and_merged_ones_are(shipped
     res = denoise(noisy, shipped, iterations="auto")
     assert res.split_share == 0
     assert chamfer(res.points, clean) < 0.2 * chamfer(noisy, clean)             # 6.3 vs 38.6
+    # Issue #12's sharp-toothed orientation shape: no flipped patch in the output's shading
+    # (sign against the surface nearest each output point; the eval's "sign output").
+    _, facing = MeshDistance(*shape_mesh("gear")).nearest(res.points)
+    assert sign_agreement(res.normals, facing) >= 0.99
     noisy, clean, _ = sample_shape("l_bracket", 50000, noise=0.02, seed=1)
     res = denoise(noisy, shipped, iterations="auto")
     assert res.split_share > 0.6
