@@ -1,11 +1,12 @@
-"""Normals-only mode on the eval's own clouds: origin MSAE per shape and per level, fast.
+"""Normals-only mode on the eval's own clouds: origin MSAE and sign per shape and level, fast.
 
 `eval` scores normals-only mode (`core.estimate_normals`) on the origin-normal metric, but it
 also runs the denoise, every tuned baseline and the floor for each cloud (~15 min a level and
 block here). This rebuilds exactly the clouds of a single-level eval run (`eval --levels L`,
 the same shapes, seeds and order) and runs only normals-only mode on them, so a change to that
 mode can be measured on all ten rows in minutes; `--baselines` adds tuned PCA (k from the
-eval's candidates, shared by the block) and the floor, and with them the gap closed.
+eval's candidates, shared by the block), the floor and the sign ceiling, and with them the gap
+closed. Sign agreement (the eval's "sign ours") is over closed, consistently wound meshes.
 
   python tools/origin_study.py --block validation --levels 0.6 0.8 1.1 1.5 2.0 [--baselines]
   python tools/origin_study.py --block thin_parts --levels 0.6
@@ -24,8 +25,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from cljn_addon import core  # noqa: E402
 from cljn_addon.cli.paths import DEFAULT_VALIDATION_DIR  # noqa: E402
 from cljn_addon.core.evaluation.baselines import pca_normals  # noqa: E402
-from cljn_addon.core.evaluation.evaluate import PCA_K, noisy_cloud, prepare_shape  # noqa: E402
-from cljn_addon.core.evaluation.metrics import msae, msae_floor_normals  # noqa: E402
+from cljn_addon.core.evaluation.evaluate import PCA_K, is_closed_and_consistent, noisy_cloud, prepare_shape  # noqa: E402
+from cljn_addon.core.evaluation.metrics import floor_and_ceiling_normals, msae, sign_agreement  # noqa: E402
 from cljn_addon.core.evaluation.shapes import THIN_SHAPES, shape_mesh  # noqa: E402
 from cljn_addon.core.formats.meshes import find_meshes, read_mesh  # noqa: E402
 
@@ -55,23 +56,32 @@ def main(argv=None):
     shapes = block_shapes(args.block, args.mesh_dir)
     for percent in args.levels:
         level = percent / 100
-        ours, pca, floors = [], {k: [] for k in PCA_K}, []
+        ours, pca, floors, signs, ceilings = [], {k: [] for k in PCA_K}, [], [], []
         for name, v, f, noisy, normals in eval_clouds(shapes, level, args.points):
             t0 = time.time()
             res = core.estimate_normals(noisy, model, orientation="outward", seed=0)
             ours.append(msae(res.normals, normals))
             line = f"{percent:.1f}% {name}: normals only {ours[-1]:.4f} ({time.time() - t0:.0f} s)"
+            closed = is_closed_and_consistent(f)
+            if closed:
+                signs.append(sign_agreement(res.normals, normals))
+                line += f", sign {signs[-1]:.1%}"
             if args.baselines:
                 for k in PCA_K:
                     pca[k].append(msae(pca_normals(noisy, k), normals))
-                floors.append(msae(msae_floor_normals(noisy, v, f, level), normals))
+                floor_n, ceiling_n = floor_and_ceiling_normals(noisy, v, f, level)
+                floors.append(msae(floor_n, normals))
                 line += f"; floor {floors[-1]:.4f}"
+                if closed:
+                    ceilings.append(sign_agreement(ceiling_n, normals))
+                    line += f", sign ceiling {ceilings[-1]:.1%}"
             print(line, flush=True)
-        row = f"{args.block} {percent:.1f}%: normals only {np.mean(ours):.4f}"
+        row = f"{args.block} {percent:.1f}%: normals only {np.mean(ours):.4f}, sign {np.mean(signs):.1%}"
         if args.baselines:
             k = min(PCA_K, key=lambda k: np.mean(pca[k]))
             p, fl = np.mean(pca[k]), np.mean(floors)
-            row += f", tuned PCA {p:.4f} (k {k}), floor {fl:.4f}, gap closed {(p - np.mean(ours)) / (p - fl):.0%}"
+            row += (f", tuned PCA {p:.4f} (k {k}), floor {fl:.4f}, gap closed {(p - np.mean(ours)) / (p - fl):.0%}, "
+                    f"sign ceiling {np.mean(ceilings):.1%}")
         print(row, flush=True)
 
 
