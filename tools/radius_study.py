@@ -35,7 +35,7 @@ from cljn_addon.core.patches import bbox_diagonal  # noqa: E402
 def radius_row(name, level, n_points, fraction, passes, model, seed=0):
     """(sigma read at this radius / true sigma, [Chamfer x1e-5 after each pass], seconds)."""
     _, _, clean, noisy = noisy_cloud(name, level, n_points, seed)
-    sigma, _ = estimate_noise(noisy, fraction * bbox_diagonal(noisy), seed=seed)
+    sigma = estimate_noise(noisy, fraction * bbox_diagonal(noisy), seed=seed).sigma
     after = []
     t0 = time.time()
     core.denoise(noisy, model, iterations=passes, patch_radius_fraction=fraction, split_walls=False,

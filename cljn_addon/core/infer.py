@@ -20,6 +20,7 @@ from .orient import orient_normals
 from .origin import origin_normals
 from .patches import PatchSource, bbox_diagonal, framed_patches, from_frame
 from .refine import inflation, lrma_update
+from .risk import choose_by_risk, probe_offsets
 from .rods import RodNormals, section_radius
 from .sheets import split_merged_walls
 
@@ -40,6 +41,7 @@ class DenoiseResult:
     split_share: float = 0.0                 # share of points put back on their own face of a merged thin wall
     stopped_early: bool = False              # auto iterations stopped: points had moved as far as the noise
     rod_share: float = 0.0                   # share of points on rods, normals from the rod's section
+    plane_share: float = 0.0                 # share of points a plane filter placed (`risk`): relief kept
     ran_on: str = ""                         # device and backend, e.g. "cpu (numpy)"
 
 
@@ -140,6 +142,11 @@ REFINE_SHEET_SIGMAS = 4.0
 THIN_REFINE_SHEET_SIGMAS = 2.5
 AUTO_SIGMA_PER_ITERATION = 0.075   # noise sigma / patch radius handled per iteration
 MAX_AUTO_ITERATIONS = 4
+# iterations='auto' at low noise also checks its result region by region against plane filters
+# (`risk.choose_by_risk`): one more run of its passes on a nudged input, so only where the noise
+# read in the quietest balls plans at most this many passes (relief inflates the plain estimate
+# and with it the passes: column_head at 0.8% runs 3).
+RISK_CHECK_MAX_PASSES = 2
 # iterations='auto' also stops early, keeping the passes before the first one whose RMS move
 # from the input passes this many noise sigmas (`noise.surface_noise_sigma`): by then it moves
 # points the noise did not (thin parts pulled together, detail eroded). A clean solid's RMS
@@ -218,7 +225,7 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
          points_per_patch=None, orientation="outward", viewpoint=None,
          device="auto", progress=None, cancel=None, seed=0, refine=True, max_displacement=None,
          normal_motion_only=True, own_sheet="auto", split_walls=True, on_iteration=None, noise_sigma=None,
-         rod_normals=True):
+         rod_normals=True, risk_check=True):
     """The engine behind `denoise` (move_points=True) and `estimate_normals` (False).
 
     points: (N, 3) array, any units. patch_radius: absolute radius; otherwise
@@ -259,6 +266,12 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
     the noise's own scale reads as noise to any estimate (column_head at 0.6%: 1.45-1.64x), and
     then auto runs passes that erode it. In normals-only mode it is the reach of each point's
     surface posterior. None (default): estimated from the cloud.
+    risk_check (ours, default True): with iterations='auto', at low noise (auto plans at most
+    `RISK_CHECK_MAX_PASSES` passes) and not thin-walled, each region keeps the network's result
+    or a plane filter's, whichever Stein's unbiased risk estimate puts nearer the surface
+    (`risk.choose_by_risk`; the noise read in the quietest balls, or noise_sigma when given):
+    relief at the noise's own scale, which the passes erode, is kept. It costs one more run of
+    the passes. plane_share in the result: the share of points a plane filter placed.
     """
     t0 = time.time()
     given = validate_points(points)
@@ -289,9 +302,12 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
     points_per_patch = points_per_patch or model.config.points_per_patch
     rng = np.random.default_rng(seed)
 
+    span = [1.0]     # the share of the bar the passes take (half when the risk check follows)
+
     def report(fraction_done, message):
         if progress is not None:
-            progress(min(max(fraction_done, 0.0), 1.0), message)
+            scaled = fraction_done * span[0] if fraction_done < 0.95 else fraction_done
+            progress(min(max(scaled, 0.0), 1.0), message)
 
     radius0 = patch_radius or fraction * bbox_diagonal(original)
     outliers = find_outliers(original, radius0)
@@ -305,15 +321,16 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
     if bound is not None and not bound > 0:
         raise InputError(f"max displacement must be a positive number, got {max_displacement!r}")
     thin_walled = False
+    quiet_sigma = float("nan")
     # Normals only needs sigma alone (the posterior's reach); moving, also how thin-walled it is.
     if (noise_sigma is None if not move_points else (bound is None or auto_iterations or own_sheet == "auto")):
         report(0.0, "estimating the noise level")
-        sigma, two_sheet_share = estimate_noise(current, radius0, seed=seed)
+        sigma, two_sheet_share, quiet_sigma = estimate_noise(current, radius0, seed=seed)
         # Normals only keeps whole-ball patches on thin walls (stool at 0.6%, 50K: MSAE 0.208,
         # 0.220 with own-sheet patches).
         thin_walled = move_points and two_sheet_share >= THIN_WALLED_SHARE and own_sheet is not False
     if noise_sigma is not None:
-        sigma = float(noise_sigma)
+        sigma = quiet_sigma = float(noise_sigma)
     if own_sheet == "auto":
         own_sheet = thin_walled
     if bound is None:
@@ -323,6 +340,10 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
         # straddle a wall 2.5 sigma thick, each pass draws the faces a little together, and
         # passes compound (l_bracket at 1.1%: Chamfer 14.8 after 3 passes, 9.6 after 1).
         iterations = auto_iteration_count(sigma, radius0, thin_walled)
+    risk_check = (risk_check and auto_iterations and not thin_walled and np.isfinite(quiet_sigma) and quiet_sigma > 0
+                  and iterations_for_noise(quiet_sigma, radius0) <= RISK_CHECK_MAX_PASSES)
+    if risk_check:
+        span[0] = 0.5
     stop_move = float("inf")
     if auto_iterations and iterations > 1:
         if noise_sigma is not None:
@@ -407,6 +428,26 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
     if not move_points:
         report(0.95, "normals of the surface each point came from")
         normals = origin_normals(current, surface, normals, sigma, seed=seed, cancel=cancel)
+    plane_share = 0.0
+    if risk_check:
+        # The same passes (same seed, pass count, sigma, bound) on the input nudged along the
+        # normals give the network's divergence for the risk estimate.
+        amplitude, offsets = probe_offsets(normals, quiet_sigma, seed=seed + 2)
+        probe = _run(original[inliers] + offsets, model, iterations, move_points=True, patch_radius=patch_radius,
+                     patch_radius_fraction=fraction, points_per_patch=points_per_patch, orientation="none",
+                     device=device, cancel=cancel, seed=seed, refine=refine, max_displacement=bound,
+                     normal_motion_only=normal_motion_only, own_sheet=False, split_walls=False,
+                     noise_sigma=sigma, rod_normals=rod_normals, risk_check=False,
+                     progress=None if progress is None else
+                     lambda f, m: progress(0.5 + 0.45 * min(f, 1.0), f"checking against plane filters: {m}"))
+        if cancel is not None and cancel.is_set():
+            raise Cancelled("cancelled")
+        report(0.95, "checking against plane filters: choosing by region")
+        # The probe ran centred on its own bounding box; its points come back in our frame.
+        chosen, choice = choose_by_risk(original[inliers], normals, current, probe.points, amplitude, quiet_sigma,
+                                        seed=seed, cancel=cancel)
+        current = clamp_displacement(chosen, original[inliers], bound)
+        plane_share = float(np.mean(choice > 0))
     side = np.zeros(len(current), np.int8)
     if move_points and split_walls:
         report(0.95, "looking for merged thin walls")
@@ -442,4 +483,4 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
                          noise_sigma=sigma, displacement_bound=bound if move_points else float("inf"), ran_on=ran_on,
                          thin_walled=thin_walled,
                          stopped_early=stopped_early, split_share=float(np.mean(side != 0)) if len(side) else 0.0,
-                         rod_share=float(np.mean(rods)) if len(rods) else 0.0)
+                         rod_share=float(np.mean(rods)) if len(rods) else 0.0, plane_share=plane_share)

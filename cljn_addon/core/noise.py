@@ -26,6 +26,12 @@ TRUNCATED_MAD = 0.9766         # median |x| of a Gaussian cut at 2.5 sigma, over
 QUANTUM_SAMPLE = 20_000        # coordinates per axis looked at to find a storage grid
 TWO_SHEET_KURTOSIS = 2.6       # flat-topped one-sheet residuals: two sides, not a crease
 THIN_WALLED_SHARE = 0.35       # share of balls across two sides that makes a thin-walled object
+# Relief at the noise's own scale reads as noise in every ball it fills (column_head at 0.6%:
+# the median reads 1.61x sigma); the noise does not change from ball to ball, the relief does,
+# so the quietest balls read the noise alone. The 10th percentile of the balls' sigmas reads
+# 0.88-0.89x sigma on a smooth solid (cylinder, icosahedron at 0.6%; 50K points): scaled back.
+QUIET_QUANTILE = 0.10
+QUIET_SCALE = 1.12
 SURFACE_NEIGHBOURS = 12        # neighbours along the surface each point is compared with
 SURFACE_REACH_SIGMAS = 5.0     # how far off the surface (in pilot sigmas) those neighbours are looked for
 SURFACE_CANDIDATES = 1000      # nearest points searched for them
@@ -59,6 +65,7 @@ def coordinate_quantum(points, sample=QUANTUM_SAMPLE, seed=0):
 class NoiseEstimate(NamedTuple):
     sigma: float          # scanner noise, in the cloud's units
     two_sheet_share: float  # share of the balls that straddle both sides of a thin part
+    quiet_sigma: float = float("nan")  # the noise read in the quietest balls (`QUIET_QUANTILE`)
 
 
 def estimate_noise_sigma(points, radius, sample=NOISE_SAMPLE, seed=0) -> float:
@@ -84,18 +91,20 @@ def estimate_noise(points, radius, sample=NOISE_SAMPLE, seed=0) -> NoiseEstimate
     """
     pts = np.asarray(points, np.float64)
     if len(pts) < 10 or not radius > 0:
-        return NoiseEstimate(0.0, 0.0)
+        return NoiseEstimate(0.0, 0.0, 0.0)
     rng = np.random.default_rng(seed)
     quantum = coordinate_quantum(pts, seed=seed)
     if quantum is not None:
         pts = pts + rng.uniform(-0.5, 0.5, pts.shape) * quantum
-        dithered, share = _estimate(pts, radius, sample, rng)
-        return NoiseEstimate(float(np.sqrt(max(dithered ** 2 - np.mean(quantum ** 2) / 12.0, 0.0))), share)
+        dithered, share, quiet = _estimate(pts, radius, sample, rng)
+        dither = np.mean(quantum ** 2) / 12.0
+        return NoiseEstimate(float(np.sqrt(max(dithered ** 2 - dither, 0.0))), share,
+                             float(np.sqrt(max(quiet ** 2 - dither, 0.0))))
     return NoiseEstimate(*_estimate(pts, radius, sample, rng))
 
 
 def _estimate(pts, radius, sample, rng):
-    """(sigma, share of two-sheet balls)."""
+    """(sigma, share of two-sheet balls, quiet sigma)."""
     centres = pts[rng.choice(len(pts), size=min(sample, len(pts)), replace=False)]
     # A sparse cloud gets wider balls: a robust quadric fit needs ~100 points to be unbiased.
     k = min(FIT_BALL_POINTS, len(pts) - 1)
@@ -107,7 +116,7 @@ def _estimate(pts, radius, sample, rng):
     local = local[dense].astype(np.float64)
     distinct = np.minimum(counts[dense], NOISE_PATCH_POINTS)     # the rest is padding
     if len(local) == 0:
-        return 0.0, 0.0
+        return 0.0, 0.0, 0.0
     z = local[..., 2]
     design = quadric_design(local)
     # Start from the half of the ball nearest the centre's own height, so that where a thin
@@ -133,7 +142,8 @@ def _estimate(pts, radius, sample, rng):
     share = float(two.mean())
     if share >= THIN_WALLED_SHARE:
         scale[two] = np.minimum(scale[two], fit["sigma"][two])
-    return float(np.median(scale) * radius), share
+    quiet = QUIET_SCALE * float(np.quantile(scale, QUIET_QUANTILE))
+    return float(np.median(scale) * radius), share, quiet * radius
 
 
 def surface_noise_sigma(points, radius, pilot_sigma, sample=NOISE_SAMPLE, seed=0) -> float:

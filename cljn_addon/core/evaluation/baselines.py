@@ -3,42 +3,10 @@ CGAL's jet smoothing (the `cgal` package, an evaluation-only dependency)."""
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial import cKDTree
 
-CHUNK = 50000
+from ..planes import local_planes, pca_normals, pca_projection_filter
 
-
-def _local_planes(points, query, k, tree=None):
-    """Centroid and smallest-variance direction of the k nearest neighbours of each query."""
-    tree = tree or cKDTree(points)
-    k = min(k, len(points))
-    centroids = np.empty_like(query)
-    normals = np.empty_like(query)
-    for s in range(0, len(query), CHUNK):
-        _, idx = tree.query(query[s:s + CHUNK], k=k, workers=-1)
-        nb = points[idx.reshape(-1, k)]
-        c = nb.mean(axis=1)
-        x = nb - c[:, None, :]
-        cov = np.einsum("mki,mkj->mij", x, x)
-        _, vecs = np.linalg.eigh(cov)
-        centroids[s:s + CHUNK] = c
-        normals[s:s + CHUNK] = vecs[:, :, 0]
-    return centroids, normals
-
-
-def pca_normals(points, k=60):
-    """Unoriented PCA normals from k nearest neighbours (Hoppe et al.)."""
-    points = np.asarray(points, np.float64)
-    return _local_planes(points, points, k)[1]
-
-
-def pca_projection_filter(points, k=60, iterations=2):
-    """Iteratively project every point onto the PCA plane of its k nearest neighbours."""
-    p = np.asarray(points, np.float64).copy()
-    for _ in range(iterations):
-        c, n = _local_planes(p, p, k)
-        p = p - np.einsum("ij,ij->i", p - c, n)[:, None] * n
-    return p
+__all__ = ["local_planes", "pca_normals", "pca_projection_filter", "jet_smoothing_available", "jet_smooth"]
 
 
 def jet_smoothing_available() -> bool:
