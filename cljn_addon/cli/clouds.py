@@ -279,6 +279,9 @@ class CloudCommand:
         rods = float(getattr(res, "rod_share", 0.0) or 0.0)
         if rods > 0:
             details += f"{rods:.1%} on rods (normals from the rod's section), "
+        plane = float(getattr(res, "plane_share", 0.0) or 0.0)
+        if plane > 0:
+            details += f"{plane:.1%} placed by a plane filter (relief the passes would erode), "
         passes = int(getattr(res, "iterations", 0))
         stopped = bool(getattr(res, "stopped_early", False))
         details += f"{passes} pass{'es' if passes != 1 else ''}" + (" (stopped: moved as far as the noise), " if stopped else ", ")
@@ -293,6 +296,7 @@ class CloudCommand:
                 "noise_sigma": sigma if math.isfinite(sigma) else None, "noise_given": given,
                 "displacement_bound": bound if math.isfinite(bound) else None,
                 "thin_walled": thin, "split_share": round(split, 4), "rod_share": round(rods, 4),
+                "plane_share": round(plane, 4),
                 "passes": passes, "stopped_by_noise": stopped,
                 "seconds": round(seconds, 3), "ran_on": ran_on}
 
