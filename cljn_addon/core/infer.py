@@ -266,8 +266,9 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
     the noise's own scale reads as noise to any estimate (column_head at 0.6%: 1.45-1.64x), and
     then auto runs passes that erode it. In normals-only mode it is the reach of each point's
     surface posterior. None (default): estimated from the cloud.
-    risk_check (ours, default True): with iterations='auto', at low noise (auto plans at most
-    `RISK_CHECK_MAX_PASSES` passes) and not thin-walled, each region keeps the network's result
+    risk_check (ours, default True): with iterations='auto', at low noise (the noise read in the
+    quietest balls plans at most `RISK_CHECK_MAX_PASSES` passes) and not thin-walled, each
+    region keeps the network's result
     or a plane filter's, whichever Stein's unbiased risk estimate puts nearer the surface
     (`risk.choose_by_risk`; the noise read in the quietest balls, or noise_sigma when given):
     relief at the noise's own scale, which the passes erode, is kept. It costs one more run of
