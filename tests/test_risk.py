@@ -49,7 +49,7 @@ def test_relief_takes_the_plane_filter_and_flat_parts_keep_the_flattener():
     amplitude, offsets = probe_offsets(normals, SIGMA, seed=4)
     flat = noisy * [1.0, 1.0, 0.0]
     flat_probe = (noisy + offsets) * [1.0, 1.0, 0.0]
-    positions, choice = choose_by_risk(noisy, normals, flat, flat_probe, amplitude, SIGMA)
+    positions, choice = choose_by_risk(noisy, normals, flat, flat_probe, amplitude, offsets, SIGMA)
     left = noisy[:, 0] < 0.4
     right = noisy[:, 0] > 0.6
     assert np.mean(choice[left] > 0) > 0.9

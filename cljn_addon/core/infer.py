@@ -445,8 +445,8 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
             raise Cancelled("cancelled")
         report(0.95, "checking against plane filters: choosing by region")
         # The probe ran centred on its own bounding box; its points come back in our frame.
-        chosen, choice = choose_by_risk(original[inliers], normals, current, probe.points, amplitude, quiet_sigma,
-                                        seed=seed, cancel=cancel)
+        chosen, choice = choose_by_risk(original[inliers], normals, current, probe.points, amplitude, offsets,
+                                        quiet_sigma, seed=seed, cancel=cancel)
         current = clamp_displacement(chosen, original[inliers], bound)
         plane_share = float(np.mean(choice > 0))
     side = np.zeros(len(current), np.int8)

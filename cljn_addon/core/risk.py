@@ -14,6 +14,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .errors import Cancelled
 from .planes import pca_projection_filter
 
 PLANE_NEIGHBOURS = (10, 20, 40, 80)   # the plane filters offered beside the network
@@ -51,7 +52,6 @@ def regional_choice(points, risks, seed=0, cancel=None):
     best = np.empty(len(centres), np.int64)
     for s in range(0, len(centres), CHUNK):
         if cancel is not None and cancel.is_set():
-            from .errors import Cancelled
             raise Cancelled("cancelled")
         _, idx = tree.query(points[centres[s:s + CHUNK]], k=k, workers=-1)
         idx = idx.reshape(len(idx), k)
@@ -60,15 +60,12 @@ def regional_choice(points, risks, seed=0, cancel=None):
     return best[nearest]
 
 
-def plane_filters(noisy, probe):
-    """{k: (filtered, filtered probe)} for each plane filter of `PLANE_NEIGHBOURS`."""
-    return {k: (pca_projection_filter(noisy, k), pca_projection_filter(probe, k)) for k in PLANE_NEIGHBOURS}
-
-
-def choose_by_risk(noisy, normals, network, network_probe, amplitude, sigma, seed=0, cancel=None):
-    """(positions (N, 3), choice (N,): 0 the network's, i the i-th plane filter's)."""
-    probe = noisy + (PROBE_SIGMAS * sigma * amplitude)[:, None] * normals
-    candidates = [(network, network_probe)] + list(plane_filters(noisy, probe).values())
+def choose_by_risk(noisy, normals, network, network_probe, amplitude, offsets, sigma, seed=0, cancel=None):
+    """(positions (N, 3), choice (N,): 0 the network's, i the i-th plane filter's of
+    `PLANE_NEIGHBOURS`). amplitude, offsets: the nudge (`probe_offsets`) network_probe ran on."""
+    probe = noisy + offsets
+    candidates = [(network, network_probe)]
+    candidates += [(pca_projection_filter(noisy, k), pca_projection_filter(probe, k)) for k in PLANE_NEIGHBOURS]
     risks = np.stack([normal_risk(noisy, normals, f, fp, amplitude, sigma) for f, fp in candidates])
     choice = regional_choice(noisy, risks, seed=seed, cancel=cancel)
     positions = np.stack([f for f, _ in candidates])[choice, np.arange(len(noisy))]

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..planes import local_planes, pca_normals, pca_projection_filter
+from ..planes import pca_normals, pca_projection_filter
 
-__all__ = ["local_planes", "pca_normals", "pca_projection_filter", "jet_smoothing_available", "jet_smooth"]
+__all__ = ["pca_normals", "pca_projection_filter", "jet_smoothing_available", "jet_smooth"]
 
 
 def jet_smoothing_available() -> bool:
