@@ -56,19 +56,25 @@ def test_progress_reaches_one_and_cancel_stops(tiny):
         denoise(noisy, tiny, cancel=cancel)
 
 
-def test_the_risk_check_reports_progress_and_can_be_cancelled(tiny):
-    """Auto iterations at low noise run the passes again on a nudged input and choose by region
-    (`risk.choose_by_risk`): the bar moves on through it, a cancel stops it, and it can be
-    turned off."""
+@pytest.mark.parametrize("mode", ["denoise", "normals only"])
+def test_the_risk_check_reports_progress_and_can_be_cancelled(tiny, mode):
+    """At low noise auto iterations (and normals-only mode, on its one pass's surface) run the
+    passes again on a nudged input and choose by region (`risk.choose_by_risk`): the bar moves
+    on through it, a cancel stops it, and it can be turned off. Normals only leaves every
+    position bit-identical."""
     noisy, _, _ = sample_shape("sphere", 3000, noise=0.004, seed=4)
+    run = ((lambda **kw: denoise(noisy, tiny, iterations="auto", **kw)) if mode == "denoise"
+           else (lambda **kw: estimate_normals(noisy, tiny, **kw)))
     seen = []
-    res = denoise(noisy, tiny, iterations="auto", progress=lambda f, m: seen.append((f, m)))
+    res = run(progress=lambda f, m: seen.append((f, m)))
     fractions = [f for f, _ in seen]
     assert fractions[-1] == 1.0 and all(b >= a for a, b in zip(fractions, fractions[1:]))
     assert any("plane filters" in m for _, m in seen)
     assert 0.0 <= res.plane_share <= 1.0
     assert np.linalg.norm(res.points - noisy, axis=1).max() <= res.displacement_bound + 1e-9
-    off = denoise(noisy, tiny, iterations="auto", risk_check=False)
+    if mode == "normals only":
+        assert np.array_equal(res.points, noisy)
+    off = run(risk_check=False)
     assert off.plane_share == 0.0
     cancel = threading.Event()
 
@@ -77,7 +83,7 @@ def test_the_risk_check_reports_progress_and_can_be_cancelled(tiny):
             cancel.set()
 
     with pytest.raises(Cancelled):
-        denoise(noisy, tiny, iterations="auto", progress=progress, cancel=cancel)
+        run(progress=progress, cancel=cancel)
 
 
 def test_cancel_during_the_wall_split_stops_it(tiny):

@@ -7,7 +7,7 @@ from cljn_addon.core.evaluation.baselines import pca_projection_filter
 from cljn_addon.core.evaluation.shapes import sample_shape
 from cljn_addon.core.noise import estimate_noise
 from cljn_addon.core.patches import bbox_diagonal
-from cljn_addon.core.risk import PROBE_SIGMAS, choose_by_risk, normal_risk, probe_offsets
+from cljn_addon.core.risk import PROBE_SIGMAS, choose_by_risk, fitted_normals, normal_risk, probe_offsets
 
 SIGMA = 0.01
 
@@ -86,3 +86,31 @@ def test_quiet_noise_reads_through_relief_that_the_median_takes_for_noise():
     est = estimate_noise(noisy, 0.05 * bbox_diagonal(noisy))
     assert est.sigma > 1.1 * SIGMA
     assert abs(est.quiet_sigma - SIGMA) < 0.5 * abs(est.sigma - SIGMA)
+
+
+def relief_normals(xy):
+    """The true normals of `relief_plane`'s bumps at xy."""
+    w = 2 * np.pi / 0.1
+    hx = 1.5 * SIGMA * w * np.cos(w * xy[:, 0]) * np.sin(w * xy[:, 1])
+    hy = 1.5 * SIGMA * w * np.sin(w * xy[:, 0]) * np.cos(w * xy[:, 1])
+    n = np.column_stack([-hx, -hy, np.ones(len(xy))])
+    return n / np.linalg.norm(n, axis=1, keepdims=True)
+
+
+def test_where_a_plane_filter_placed_the_points_their_normals_follow_the_relief():
+    """The plane filter keeps the bumps; a network that flattened them would say +z. The
+    output's own planes follow the bumps, and each keeps the sign it was given."""
+    from cljn_addon.core.evaluation.metrics import msae
+
+    noisy, _, flat_normals = relief_plane(30000, seed=7, relief_share=1.0)
+    placed = pca_projection_filter(noisy, 20)
+    truth = relief_normals(placed[:, :2])
+    rows = np.arange(0, len(placed), 3)
+    given = flat_normals[rows].copy()
+    given[::2] *= -1
+    normals = flat_normals.copy()
+    normals[rows] = given
+    fitted = fitted_normals(placed, rows, normals, SIGMA)
+    assert np.allclose(np.linalg.norm(fitted, axis=1), 1.0)
+    assert np.all(np.einsum("ij,ij->i", fitted, given) > 0)
+    assert msae(fitted, truth[rows]) < 0.5 * msae(given, truth[rows])

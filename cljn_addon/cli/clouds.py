@@ -281,7 +281,7 @@ class CloudCommand:
             details += f"{rods:.1%} on rods (normals from the rod's section), "
         plane = float(getattr(res, "plane_share", 0.0) or 0.0)
         if plane > 0:
-            details += f"{plane:.1%} placed by a plane filter (relief the passes would erode), "
+            details += f"{plane:.1%} by a plane filter where it beat the network (relief kept), "
         passes = int(getattr(res, "iterations", 0))
         stopped = bool(getattr(res, "stopped_early", False))
         details += f"{passes} pass{'es' if passes != 1 else ''}" + (" (stopped: moved as far as the noise), " if stopped else ", ")

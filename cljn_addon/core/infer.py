@@ -20,7 +20,7 @@ from .orient import orient_normals
 from .origin import origin_normals
 from .patches import PatchSource, bbox_diagonal, framed_patches, from_frame
 from .refine import inflation, lrma_update
-from .risk import choose_by_risk, probe_offsets
+from .risk import choose_by_risk, fitted_normals, probe_offsets
 from .rods import RodNormals, section_radius
 from .sheets import split_merged_walls
 
@@ -216,7 +216,8 @@ def denoise(points, model, iterations=4, **options):
 def estimate_normals(points, model, **options):
     """Normals only, positions untouched (bit-identical): one network pass, then at each input
     point the normal of the surface it was sampled from (`origin.origin_normals`: the posterior
-    mean over the pass's filtered points within the noise of the point)."""
+    mean over the pass's filtered points within the noise of the point; at low noise that
+    surface is first checked against plane filters, as the denoise's is: see `_run`)."""
     options.pop("iterations", None)
     return _run(points, model, 1, move_points=False, **options)
 
@@ -271,8 +272,10 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
     region keeps the network's result
     or a plane filter's, whichever Stein's unbiased risk estimate puts nearer the surface
     (`risk.choose_by_risk`; the noise read in the quietest balls, or noise_sigma when given):
-    relief at the noise's own scale, which the passes erode, is kept. It costs one more run of
-    the passes. plane_share in the result: the share of points a plane filter placed.
+    relief at the noise's own scale, which the passes erode, is kept; there the normals are the
+    output's own planes (`risk.fitted_normals`). It costs one more run of the passes. Normals
+    only checks the surface its one pass filtered in the same way, at the same noise, before
+    the posterior. plane_share in the result: the share of points a plane filter placed.
     """
     t0 = time.time()
     given = validate_points(points)
@@ -321,15 +324,18 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
     bound = max_displacement
     if bound is not None and not bound > 0:
         raise InputError(f"max displacement must be a positive number, got {max_displacement!r}")
-    thin_walled = False
+    thin_walled = two_sheets = False
     quiet_sigma = float("nan")
-    # Normals only needs sigma alone (the posterior's reach); moving, also how thin-walled it is.
-    if (noise_sigma is None if not move_points else (bound is None or auto_iterations or own_sheet == "auto")):
+    # Normals only needs sigma (the posterior's reach) and, for its risk check, the quiet sigma
+    # and how thin-walled it is; moving, also the bound and the passes.
+    if (noise_sigma is None or risk_check) if not move_points else (bound is None or auto_iterations
+                                                                   or own_sheet == "auto"):
         report(0.0, "estimating the noise level")
         sigma, two_sheet_share, quiet_sigma = estimate_noise(current, radius0, seed=seed)
+        two_sheets = two_sheet_share >= THIN_WALLED_SHARE
         # Normals only keeps whole-ball patches on thin walls (stool at 0.6%, 50K: MSAE 0.208,
         # 0.220 with own-sheet patches).
-        thin_walled = move_points and two_sheet_share >= THIN_WALLED_SHARE and own_sheet is not False
+        thin_walled = move_points and two_sheets and own_sheet is not False
     if noise_sigma is not None:
         sigma = quiet_sigma = float(noise_sigma)
     if own_sheet == "auto":
@@ -341,7 +347,8 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
         # straddle a wall 2.5 sigma thick, each pass draws the faces a little together, and
         # passes compound (l_bracket at 1.1%: Chamfer 14.8 after 3 passes, 9.6 after 1).
         iterations = auto_iteration_count(sigma, radius0, thin_walled)
-    risk_check = (risk_check and auto_iterations and not thin_walled and np.isfinite(quiet_sigma) and quiet_sigma > 0
+    risk_check = (risk_check and (auto_iterations or not move_points) and not thin_walled
+                  and not (two_sheets and not move_points) and np.isfinite(quiet_sigma) and quiet_sigma > 0
                   and iterations_for_noise(quiet_sigma, radius0) <= RISK_CHECK_MAX_PASSES)
     if risk_check:
         span[0] = 0.5
@@ -426,15 +433,14 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
         normals = new_normals
         rods = on_rods(normals, section)
 
-    if not move_points:
-        report(0.95, "normals of the surface each point came from")
-        normals = origin_normals(current, surface, normals, sigma, seed=seed, cancel=cancel)
     plane_share = 0.0
     if risk_check:
-        # The same passes (same seed, pass count, sigma, bound) on the input nudged along the
-        # normals give the network's divergence for the risk estimate.
+        # The same passes (same seed, pass count, radius, sigma, bound) on the input nudged
+        # along the normals give the network's divergence for the risk estimate. Normals only:
+        # its one pass filtered the surface its normals come from; that surface is checked.
         amplitude, offsets = probe_offsets(normals, quiet_sigma, seed=seed + 2)
-        probe = _run(original[inliers] + offsets, model, iterations, move_points=True, patch_radius=patch_radius,
+        probe = _run(original[inliers] + offsets, model, iterations, move_points=True,
+                     patch_radius=patch_radius if move_points else radius,
                      patch_radius_fraction=fraction, points_per_patch=points_per_patch, orientation="none",
                      device=device, cancel=cancel, seed=seed, refine=refine, max_displacement=bound,
                      normal_motion_only=normal_motion_only, own_sheet=False, split_walls=False,
@@ -445,10 +451,22 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
             raise Cancelled("cancelled")
         report(0.95, "checking against plane filters: choosing by region")
         # The probe ran centred on its own bounding box; its points come back in our frame.
-        chosen, choice = choose_by_risk(original[inliers], normals, current, probe.points, amplitude, offsets,
-                                        quiet_sigma, seed=seed, cancel=cancel)
-        current = clamp_displacement(chosen, original[inliers], bound)
+        chosen, choice = choose_by_risk(original[inliers], normals, current if move_points else surface,
+                                        probe.points, amplitude, offsets, quiet_sigma, seed=seed, cancel=cancel)
+        chosen = clamp_displacement(chosen, original[inliers], bound)
+        # There the normal is the output's own plane; a rod's keeps its section's.
+        planar = np.flatnonzero((choice > 0) & ~rods)
+        if len(planar):
+            normals = normals.copy()
+            normals[planar] = fitted_normals(chosen, planar, normals, quiet_sigma, seed=seed)
+        if move_points:
+            current = chosen
+        else:
+            surface = chosen
         plane_share = float(np.mean(choice > 0))
+    if not move_points:
+        report(0.95, "normals of the surface each point came from")
+        normals = origin_normals(current, surface, normals, sigma, seed=seed, cancel=cancel)
     side = np.zeros(len(current), np.int8)
     if move_points and split_walls:
         report(0.95, "looking for merged thin walls")
