@@ -347,8 +347,8 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
         # straddle a wall 2.5 sigma thick, each pass draws the faces a little together, and
         # passes compound (l_bracket at 1.1%: Chamfer 14.8 after 3 passes, 9.6 after 1).
         iterations = auto_iteration_count(sigma, radius0, thin_walled)
-    risk_check = (risk_check and (auto_iterations or not move_points) and not thin_walled
-                  and not (two_sheets and not move_points) and np.isfinite(quiet_sigma) and quiet_sigma > 0
+    risk_check = (risk_check and (auto_iterations or not move_points) and not (thin_walled if move_points else two_sheets)
+                  and np.isfinite(quiet_sigma) and quiet_sigma > 0
                   and iterations_for_noise(quiet_sigma, radius0) <= RISK_CHECK_MAX_PASSES)
     if risk_check:
         span[0] = 0.5
