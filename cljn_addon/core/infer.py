@@ -457,7 +457,6 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
         # There the normal is the output's own plane; a rod's keeps its section's.
         planar = np.flatnonzero((choice > 0) & ~rods)
         if len(planar):
-            normals = normals.copy()
             normals[planar] = fitted_normals(chosen, planar, normals, quiet_sigma, seed=seed)
         if move_points:
             current = chosen

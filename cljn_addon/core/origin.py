@@ -44,13 +44,20 @@ def karcher_axes(weights, normals, steps=KARCHER_STEPS):
     return axis
 
 
+def median_count_within(tree, points, radius, least, most, seed=0) -> int:
+    """The median number of `points` (in `tree`, their cKDTree) within `radius` of a sample of
+    them, clipped to [least, most] and to the cloud's size: a k for k-nearest queries that
+    reaches about `radius`."""
+    rng = np.random.default_rng(seed)
+    probe = points[rng.choice(len(points), size=min(COUNT_SAMPLE, len(points)), replace=False)]
+    counts = tree.query_ball_point(probe, radius, return_length=True, workers=-1)
+    return int(np.clip(np.median(counts), least, min(most, len(points))))
+
+
 def posterior_neighbours(tree, surface, sigma, seed=0) -> int:
     """How many surface points (in `tree`, a cKDTree of `surface`) the posterior needs: the
     median count within its reach."""
-    rng = np.random.default_rng(seed)
-    probe = surface[rng.choice(len(surface), size=min(COUNT_SAMPLE, len(surface)), replace=False)]
-    counts = tree.query_ball_point(probe, REACH_SIGMAS * sigma, return_length=True, workers=-1)
-    return int(np.clip(np.median(counts), MIN_NEIGHBOURS, min(MAX_NEIGHBOURS, len(surface))))
+    return median_count_within(tree, surface, REACH_SIGMAS * sigma, MIN_NEIGHBOURS, MAX_NEIGHBOURS, seed)
 
 
 def origin_normals(points, surface, surface_normals, sigma, seed=0, cancel=None):

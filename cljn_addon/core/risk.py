@@ -17,6 +17,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .errors import Cancelled
+from .origin import median_count_within
 from .planes import local_planes, pca_projection_filter
 
 PLANE_NEIGHBOURS = (10, 20, 40, 80)   # the plane filters offered beside the network
@@ -35,7 +36,6 @@ CHUNK = 1_000
 # points; 20 0.427, 80 0.426); 20K, 0.570 network, 0.476 from 3 sigmas (~20), 0.452 from 40.
 FIT_SIGMAS = 3.0
 FIT_NEIGHBOURS = (40, 256)
-FIT_SAMPLE = 2_000
 
 
 def probe_offsets(normals, sigma, seed=0, probe_sigmas=PROBE_SIGMAS):
@@ -86,10 +86,7 @@ def fitted_normals(points, rows, normals, sigma, seed=0):
     """(len(rows), 3) unit normals at points[rows]: the PCA plane of the points within
     `FIT_SIGMAS` sigma (as a neighbour count: the median there), signed as `normals[rows]`."""
     tree = cKDTree(points)
-    rng = np.random.default_rng(seed)
-    sample = points[rng.choice(len(points), min(len(points), FIT_SAMPLE), replace=False)]
-    counts = tree.query_ball_point(sample, FIT_SIGMAS * sigma, return_length=True, workers=-1)
-    k = int(np.clip(np.median(counts), *FIT_NEIGHBOURS))
+    k = median_count_within(tree, points, FIT_SIGMAS * sigma, *FIT_NEIGHBOURS, seed=seed)
     fitted = local_planes(points, points[rows], k, tree=tree)[1]
     fitted[np.einsum("ij,ij->i", fitted, normals[rows]) < 0] *= -1
     return fitted
