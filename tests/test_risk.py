@@ -62,6 +62,29 @@ def test_relief_takes_the_plane_filter_and_flat_parts_keep_the_flattener():
     assert error(positions) < min(error(pca_projection_filter(noisy, k)) for k in (10, 20, 40, 80))
 
 
+def test_a_cancel_stops_the_choice_between_plane_filters(monkeypatch):
+    """The plane filters take minutes at 10M points: a cancel set while one runs stops the
+    choice before the next, not after all of them."""
+    import threading
+
+    from cljn_addon.core import Cancelled, risk
+
+    noisy, _, normals = relief_plane(2000, seed=5)
+    amplitude, offsets = probe_offsets(normals, SIGMA, seed=6)
+    cancel = threading.Event()
+    calls = []
+
+    def filter_then_cancel(points, k):
+        calls.append(k)
+        cancel.set()
+        return pca_projection_filter(points, k)
+
+    monkeypatch.setattr(risk, "pca_projection_filter", filter_then_cancel)
+    with pytest.raises(Cancelled):
+        choose_by_risk(noisy, normals, noisy, noisy + offsets, amplitude, offsets, SIGMA, cancel=cancel)
+    assert calls == [risk.PLANE_NEIGHBOURS[0]] * 2
+
+
 def test_the_probe_nudges_along_the_normals_by_half_a_sigma():
     normals = np.tile([0.0, 1.0, 0.0], (50000, 1))
     amplitude, offsets = probe_offsets(normals, SIGMA, seed=0)

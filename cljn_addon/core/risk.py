@@ -75,7 +75,11 @@ def choose_by_risk(noisy, normals, network, network_probe, amplitude, offsets, s
     `PLANE_NEIGHBOURS`). amplitude, offsets: the nudge (`probe_offsets`) network_probe ran on."""
     probe = noisy + offsets
     candidates = [(network, network_probe)]
-    candidates += [(pca_projection_filter(noisy, k), pca_projection_filter(probe, k)) for k in PLANE_NEIGHBOURS]
+    for k in PLANE_NEIGHBOURS:
+        # Each filter pair takes minutes at 10M points: a cancel stops between them.
+        if cancel is not None and cancel.is_set():
+            raise Cancelled("cancelled")
+        candidates.append((pca_projection_filter(noisy, k), pca_projection_filter(probe, k)))
     risks = np.stack([normal_risk(noisy, normals, f, fp, amplitude, sigma) for f, fp in candidates])
     choice = regional_choice(noisy, risks, seed=seed, cancel=cancel)
     positions = np.stack([f for f, _ in candidates])[choice, np.arange(len(noisy))]
