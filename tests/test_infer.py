@@ -96,17 +96,14 @@ def test_the_risk_check_gate_lets_three_passes_through_in_the_denoise_only(tiny)
     from cljn_addon.core.patches import bbox_diagonal
 
     noisy, _, _ = sample_shape("sphere", 3000, noise=0.018, seed=4)
-    quiet_sigma = estimate_noise(noisy, 0.05 * bbox_diagonal(noisy)).quiet_sigma
-    assert iterations_for_noise(quiet_sigma, 0.05 * bbox_diagonal(noisy)) == 3
+    radius = 0.05 * bbox_diagonal(noisy)
+    assert iterations_for_noise(estimate_noise(noisy, radius).quiet_sigma, radius) == 3
     assert NORMALS_RISK_CHECK_MAX_PASSES < 3 <= RISK_CHECK_MAX_PASSES
-
-    def messages(run):
-        seen = []
-        run(progress=lambda f, m: seen.append(m))
-        return seen
-
-    assert any("plane filters" in m for m in messages(lambda **kw: denoise(noisy, tiny, iterations="auto", **kw)))
-    assert not any("plane filters" in m for m in messages(lambda **kw: estimate_normals(noisy, tiny, **kw)))
+    denoised, normals_only = [], []
+    denoise(noisy, tiny, iterations="auto", progress=lambda f, m: denoised.append(m))
+    estimate_normals(noisy, tiny, progress=lambda f, m: normals_only.append(m))
+    assert any("plane filters" in m for m in denoised)
+    assert not any("plane filters" in m for m in normals_only)
 
 
 def test_cancel_during_the_wall_split_stops_it(tiny):
