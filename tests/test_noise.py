@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 import torch
 
-from cljn_addon.core import InputError, build_model, denoise
+from cljn_addon.core import InputError, build_model, denoise, estimate_normals
 from cljn_addon.core.evaluation.shapes import sample_shape
 from cljn_addon.core.noise import (
     DISPLACEMENT_BOUND_SIGMAS,
@@ -177,3 +177,17 @@ def test_surface_noise_estimate_is_in_cloud_units_and_thins_dense_clouds():
     est = surface_noise_sigma(far, radius, estimate_noise_sigma(far, radius))
     assert 0.85 * 0.4 < est < 1.12 * 0.4
     assert np.isnan(surface_noise_sigma(noisy[:20], 0.05, 0.01))
+
+
+def test_normals_only_reads_the_noise_in_the_quietest_balls():
+    """The star prism's tips and edges read as noise in the whole-cloud estimate (1.4x the truth
+    at 0.6%); normals only takes the quiet balls' sigma (1.09x) as the reach of its posterior,
+    which blends faces less (origin MSAE on the validation meshes 0.1298 -> 0.1283 at 0.6%)."""
+    torch.manual_seed(0)
+    noisy, _, _ = sample_shape("star_prism", 20000, noise=0.006, seed=3)
+    model = build_model("tiny").eval()
+    whole, _, quiet = estimate_noise(noisy - noisy.mean(axis=0), 0.05 * bbox_diagonal(noisy))
+    res = estimate_normals(noisy, model, risk_check=False)
+    assert whole > 1.3 * 0.006
+    assert res.noise_sigma == pytest.approx(quiet, rel=0.05)
+    assert 0.85 * 0.006 < res.noise_sigma < 1.2 * 0.006

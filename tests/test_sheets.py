@@ -5,7 +5,7 @@ as a whole: tests/test_noise.py.)"""
 import numpy as np
 
 import cljn_addon.core.sheets as sheets
-from cljn_addon.core.sheets import fit_two_sheets, own_sheet_patches, split_merged_walls
+from cljn_addon.core.sheets import fit_two_sheets, own_sheet_patches, seat_on_facing_face, split_merged_walls
 
 
 def _patches(m, n, height, sigma, seed):
@@ -217,3 +217,36 @@ def test_a_tightly_bent_merged_wall_keeps_the_narrow_sheet(monkeypatch):
     monkeypatch.setattr(sheets, "SHEET_SCALES", (128,))
     out_wide, side_wide = split_merged_walls(noisy, merged, outward)
     assert (side_wide != 0).mean() < 0.7 and face_error(out_wide) > 1.5 * face_error(out)
+
+
+def _faced_by_input_side(noisy, merged):
+    """Unit normals +-z, each facing the side of the mid-plane its input lay on (orient step 5)."""
+    return np.c_[np.zeros((len(merged), 2)), np.where(noisy[:, 2] >= 0, 1.0, -1.0)]
+
+
+def test_points_facing_their_input_side_are_seated_on_the_face_they_face():
+    """A merged wall 3 sigma thick: each point goes to the face its normal faces, half the
+    thickness from the input's mid-plane (a from the input's spread less the noise)."""
+    sigma, half = 0.01, 0.015
+    _, noisy, merged, _, _ = _wall(20000, half, sigma, seed=4)
+    normals = _faced_by_input_side(noisy, merged)
+    rows = np.arange(0, len(merged), 2)
+    seated = seat_on_facing_face(noisy, merged, normals, rows, sigma)
+    # (The mid-plane is a median of 48 inputs: it strays by ~0.2 sigma.)
+    assert np.mean(np.sign(seated[:, 2]) == normals[rows, 2]) > 0.99
+    assert abs(np.median(np.abs(seated[:, 2])) / half - 1) < 0.15
+    assert _face_distance(seated, half) < 0.3 * _face_distance(merged[rows], half)
+    np.testing.assert_allclose(seated[:, :2], merged[rows, :2])      # along the normal only
+
+
+def test_a_wall_too_thin_to_measure_is_seated_at_least_half_a_sigma_out():
+    """0.4 sigma thick: the input's spread cannot tell its faces from noise, so each point is
+    put SEAT_MIN_OFFSET sigma out on its side (where the face it shades as is the nearest)."""
+    sigma, half = 0.01, 0.002
+    _, noisy, merged, _, _ = _wall(20000, half, sigma, seed=5)
+    normals = _faced_by_input_side(noisy, merged)
+    seated = seat_on_facing_face(noisy, merged, normals, np.arange(len(merged)), sigma)
+    assert np.mean(np.sign(seated[:, 2]) == normals[:, 2]) > 0.98
+    height = np.abs(seated[:, 2])
+    assert np.quantile(height, 0.05) > 0.15 * sigma          # (0.24 sigma: the median strays)
+    assert abs(np.median(height) / (sheets.SEAT_MIN_OFFSET * sigma) - 1) < 0.3

@@ -27,6 +27,8 @@ CAD edges:
    position still says which face it was sampled from: it faces the side of the local median
    of the input it lay on. On a wall t thick that is right for Phi(t / 2 sigma) of the points,
    which is also the most any method can reach (`evaluation.metrics.sign_ceiling_normals`).
+   The denoise then puts each such point on the face it faces (`sheets.seat_on_facing_face`),
+   so that its shading and its position agree.
 
 Viewpoint: each normal is turned to face the given scanner/camera position.
 """
@@ -107,15 +109,17 @@ def _tree_signs(n_nodes, i, j, cost, sign_of_edge, labels, n_labels):
 
 
 def orient_outward(points: np.ndarray, normals: np.ndarray, k: int = 10, sources=None,
-                   thin_walled=False) -> np.ndarray:
+                   thin_walled=False, with_input_side=False):
     """Outward normals for a closed shape (steps 1-5 of the module doc). sources: each point's
     input position (before denoising; the points themselves for a normals-only run), for step 5.
     thin_walled: the noise estimate found two sheets in many balls (`noise.estimate_noise`), so
-    points seen from both sides are walls even when the cloud looks like an open scan."""
+    points seen from both sides are walls even when the cloud looks like an open scan.
+    with_input_side: also return the indices of the points step 5 turned to their input side."""
     n = len(points)
     normals = np.asarray(normals, np.float64)
+    faced = np.zeros(0, np.int64)
     if n < 2:
-        return normals.copy()
+        return (normals.copy(), faced) if with_input_side else normals.copy()
     k = min(k, n - 1)
     tree = cKDTree(points)
     _, nbr = tree.query(points, k=k + 1, workers=-1)
@@ -199,19 +203,19 @@ def orient_outward(points: np.ndarray, normals: np.ndarray, k: int = 10, sources
 
     # 5. Walls thinner than the noise: the side of the input each point lay on.
     if sources is not None and two_sided.any():
-        oriented = _face_input_side(points, tree, oriented, np.asarray(sources, np.float64), two_sided)
-    return oriented
+        oriented, faced = _face_input_side(points, tree, oriented, np.asarray(sources, np.float64), two_sided)
+    return (oriented, faced) if with_input_side else oriented
 
 
 def _face_input_side(points, tree, normals, sources, two_sided):
     """Step 5 of the module doc: points seen from both sides, among neighbours mostly seen from
     both sides, face the side of the local input median their own input position lies on.
-    tree: the k-d tree of `points`."""
+    tree: the k-d tree of `points`. Returns the normals and the indices of the points turned."""
     candidates = np.flatnonzero(two_sided)
     _, near = tree.query(points[candidates], k=min(TWO_SIDED_NEIGHBOURS, len(points)), workers=-1)
     idx = candidates[two_sided[near.reshape(len(candidates), -1)].mean(axis=1) >= TWO_SIDED_SHARE]
     if not len(idx):
-        return normals
+        return normals, idx
     nrm = normals[idx]
     source_tree = tree if np.array_equal(sources, points) else cKDTree(sources)   # normals only: the same cloud
     _, around = source_tree.query(points[idx], k=min(INPUT_SIDE_NEIGHBOURS, len(sources)), workers=-1)
@@ -220,7 +224,7 @@ def _face_input_side(points, tree, normals, sources, two_sided):
     side = np.einsum("mc,mc->m", sources[idx] - points[idx], nrm) - median
     out = normals.copy()
     out[idx] = nrm * np.where(side < 0, -1.0, 1.0)[:, None]
-    return out
+    return out, idx
 
 
 def _directions(count):
@@ -301,20 +305,25 @@ def orient_toward(points, normals, viewpoint):
     return normals * np.where(facing < 0, -1.0, 1.0)[:, None]
 
 
-def orient_normals(points, normals, mode="outward", viewpoint=None, sources=None, thin_walled=False):
+def orient_normals(points, normals, mode="outward", viewpoint=None, sources=None, thin_walled=False,
+                   with_input_side=False):
     """Orient unit normals: 'outward' (closed shapes), 'viewpoint' (scans) or 'none'.
     sources ('outward' only): each point's input position, so that points on walls thinner
     than the noise can face the side they were sampled on (step 5 of the module doc);
-    thin_walled: see `orient_outward`."""
+    thin_walled, with_input_side: see `orient_outward` (no point is turned by step 5 but outward)."""
     if mode not in ORIENTATIONS:
         raise InputError(f"unknown orientation {mode!r}; choose one of {', '.join(ORIENTATIONS)}")
+    none_faced = np.zeros(0, np.int64)
     if mode == "none":
-        return np.asarray(normals, np.float64).copy()
+        out = np.asarray(normals, np.float64).copy()
+        return (out, none_faced) if with_input_side else out
     if mode == "viewpoint":
         if viewpoint is None:
             raise InputError("orientation 'viewpoint' needs a viewpoint (x, y, z)")
         vp = np.asarray(viewpoint, np.float64)
         if vp.size != 3 or not np.isfinite(vp).all():
             raise InputError(f"viewpoint must be three finite numbers, got {viewpoint!r}")
-        return orient_toward(points, normals, vp)
-    return orient_outward(np.asarray(points, np.float64), normals, sources=sources, thin_walled=thin_walled)
+        out = orient_toward(points, normals, vp)
+        return (out, none_faced) if with_input_side else out
+    return orient_outward(np.asarray(points, np.float64), normals, sources=sources, thin_walled=thin_walled,
+                          with_input_side=with_input_side)
