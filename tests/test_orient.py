@@ -1,12 +1,13 @@
 """Orientation: signs agree with the true outward normals."""
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 
 from cljn_addon.core import InputError
 from cljn_addon.core.evaluation.baselines import pca_normals
 from cljn_addon.core.evaluation.metrics import sign_agreement, sign_ceiling_normals
 from cljn_addon.core.evaluation.shapes import normalise_unit_diagonal, sample_shape, shape_mesh
-from cljn_addon.core.orient import clear_view_signs, orient_normals, visibility_votes
+from cljn_addon.core.orient import clear_view_signs, input_heights, orient_normals, visibility_votes
 
 
 @pytest.mark.parametrize("name", ["sphere", "torus", "box"])
@@ -100,6 +101,31 @@ def test_outward_orientation_of_thin_parts_reaches_its_ceiling(name):
     assert ceiling < 0.99
     for sources in (None, noisy):
         assert sign_agreement(orient_normals(noisy, scrambled, "outward", sources=sources), truth) >= ceiling - 0.015
+
+
+def test_points_turned_to_their_input_side_come_with_its_heights():
+    """A wall 2 sigma thick drawn into one sheet (thin-walled): step 5 turns each point to the
+    side of the local input median its own input lay on (right for ~Phi(1) = 84%), and hands
+    back that median and the heights' variance along the turned normal (what the seating in
+    `sheets.seat_on_facing_face` reads, so it need not search the input again)."""
+    rng = np.random.default_rng(3)
+    n, sigma, half = 20000, 0.01, 0.01
+    xy = rng.random((n, 2))
+    face = np.where(rng.random(n) < 0.5, -1.0, 1.0)
+    sources = np.c_[xy, face * half + rng.normal(0, sigma, n)]
+    merged = np.c_[xy, np.zeros(n)]
+    scrambled = np.c_[np.zeros((n, 2)), np.where(rng.random(n) < 0.5, -1.0, 1.0)]
+    out, faced = orient_normals(merged, scrambled, "outward", sources=sources, thin_walled=True, with_input_side=True)
+    idx = faced.idx
+    assert len(idx) > 0.5 * n
+    assert np.all(np.einsum("mc,mc->m", sources[idx] - merged[idx], out[idx]) >= faced.median)
+    assert 0.78 < np.mean(np.sign(out[idx, 2]) == face[idx]) < 0.9
+    heights = input_heights(cKDTree(sources), sources, merged[idx], out[idx])
+    np.testing.assert_allclose(faced.median, np.median(heights, axis=1), atol=1e-12)
+    np.testing.assert_allclose(faced.variance, heights.var(axis=1), atol=1e-12)
+    assert np.median(faced.variance) > sigma ** 2          # the two faces widen the spread
+    _, none_faced = orient_normals(merged, scrambled, "outward", with_input_side=True)
+    assert len(none_faced.idx) == 0
 
 
 def test_open_terrain_faces_up_and_a_flat_closed_box_still_faces_out():

@@ -3,8 +3,10 @@ patch, not on one noisy sheet, and the centre's own sheet kept. (A crease can re
 sheets too; that is why the engine uses own-sheet patches only on clouds that are thin-walled
 as a whole: tests/test_noise.py.)"""
 import numpy as np
+from scipy.spatial import cKDTree
 
 import cljn_addon.core.sheets as sheets
+from cljn_addon.core.orient import input_heights
 from cljn_addon.core.sheets import fit_two_sheets, own_sheet_patches, seat_on_facing_face, split_merged_walls
 
 
@@ -224,6 +226,12 @@ def _faced_by_input_side(noisy, merged):
     return np.c_[np.zeros((len(merged), 2)), np.where(noisy[:, 2] >= 0, 1.0, -1.0)]
 
 
+def _seat(noisy, merged, normals, rows, sigma):
+    """`seat_on_facing_face` for `rows`, from the input heights orient's step 5 hands over."""
+    heights = input_heights(cKDTree(noisy), noisy, merged[rows], normals[rows])
+    return seat_on_facing_face(merged[rows], normals[rows], np.median(heights, axis=1), heights.var(axis=1), sigma)
+
+
 def test_points_facing_their_input_side_are_seated_on_the_face_they_face():
     """A merged wall 3 sigma thick: each point goes to the face its normal faces, half the
     thickness from the input's mid-plane (a from the input's spread less the noise)."""
@@ -231,7 +239,7 @@ def test_points_facing_their_input_side_are_seated_on_the_face_they_face():
     _, noisy, merged, _, _ = _wall(20000, half, sigma, seed=4)
     normals = _faced_by_input_side(noisy, merged)
     rows = np.arange(0, len(merged), 2)
-    seated = seat_on_facing_face(noisy, merged, normals, rows, sigma)
+    seated = _seat(noisy, merged, normals, rows, sigma)
     # (The mid-plane is a median of 48 inputs: it strays by ~0.2 sigma.)
     assert np.mean(np.sign(seated[:, 2]) == normals[rows, 2]) > 0.99
     assert abs(np.median(np.abs(seated[:, 2])) / half - 1) < 0.15
@@ -245,7 +253,7 @@ def test_a_wall_too_thin_to_measure_is_seated_at_least_half_a_sigma_out():
     sigma, half = 0.01, 0.002
     _, noisy, merged, _, _ = _wall(20000, half, sigma, seed=5)
     normals = _faced_by_input_side(noisy, merged)
-    seated = seat_on_facing_face(noisy, merged, normals, np.arange(len(merged)), sigma)
+    seated = _seat(noisy, merged, normals, np.arange(len(merged)), sigma)
     assert np.mean(np.sign(seated[:, 2]) == normals[:, 2]) > 0.98
     height = np.abs(seated[:, 2])
     assert np.quantile(height, 0.05) > 0.15 * sigma          # (0.24 sigma: the median strays)

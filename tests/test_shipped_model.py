@@ -373,7 +373,7 @@ def test_star_prism_tips_shade_the_way_they_face(shipped, monkeypatch):
     noisy, _, _ = sample_shape("star_prism", 20000, noise=0.006, seed=8)
     surface = MeshDistance(*shape_mesh("star_prism"))
     seated = denoise(noisy, shipped, iterations="auto")
-    monkeypatch.setattr(infer, "seat_on_facing_face", lambda sources, points, normals, rows, sigma: points[rows])
+    monkeypatch.setattr(infer, "seat_on_facing_face", lambda points, normals, median, variance, sigma: points)
     unseated = denoise(noisy, shipped, iterations="auto")
     (d_seated, n_seated), (d_unseated, n_unseated) = surface.nearest(seated.points), surface.nearest(unseated.points)
     assert sign_agreement(seated.normals, n_seated) >= 0.985

@@ -520,11 +520,13 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
         # seated, Chamfer 4.09 -> 4.16).
         row_of = np.full(len(original), -1)
         row_of[inliers] = np.arange(len(inliers))
-        rows = row_of[faced]
-        rows = rows[rows >= 0]
-        rows = rows[(side[rows] == 0) & ~plane_placed[rows]]
-        if len(rows):
-            seated = seat_on_facing_face(original, current, all_normals[inliers], rows, sigma)
+        rows = row_of[faced.idx]
+        keep = np.flatnonzero(rows >= 0)
+        keep = keep[(side[rows[keep]] == 0) & ~plane_placed[rows[keep]]]
+        if len(keep):
+            rows = rows[keep]
+            seated = seat_on_facing_face(current[rows], all_normals[faced.idx[keep]], faced.median[keep],
+                                         faced.variance[keep], sigma)
             out_points[inliers[rows]] = clamp_displacement(seated, original[inliers[rows]], bound) + centre
     all_normals /= np.linalg.norm(all_normals, axis=1, keepdims=True)
     displacement = np.linalg.norm(out_points - given, axis=1)

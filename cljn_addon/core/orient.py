@@ -34,6 +34,8 @@ Viewpoint: each normal is turned to face the given scanner/camera position.
 """
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import breadth_first_order, connected_components, minimum_spanning_tree
@@ -114,10 +116,10 @@ def orient_outward(points: np.ndarray, normals: np.ndarray, k: int = 10, sources
     input position (before denoising; the points themselves for a normals-only run), for step 5.
     thin_walled: the noise estimate found two sheets in many balls (`noise.estimate_noise`), so
     points seen from both sides are walls even when the cloud looks like an open scan.
-    with_input_side: also return the indices of the points step 5 turned to their input side."""
+    with_input_side: also return the points step 5 turned to their input side (`InputSide`)."""
     n = len(points)
     normals = np.asarray(normals, np.float64)
-    faced = np.zeros(0, np.int64)
+    faced = NO_INPUT_SIDE
     if n < 2:
         return (normals.copy(), faced) if with_input_side else normals.copy()
     k = min(k, n - 1)
@@ -207,24 +209,46 @@ def orient_outward(points: np.ndarray, normals: np.ndarray, k: int = 10, sources
     return (oriented, faced) if with_input_side else oriented
 
 
+class InputSide(NamedTuple):
+    """The points step 5 turned to their input side (`idx`, rows of the oriented cloud) and,
+    along each one's oriented normal, the median and the variance of the heights of its
+    INPUT_SIDE_NEIGHBOURS nearest inputs (`input_heights`): what `sheets.seat_on_facing_face`
+    needs to put them on the face they face, without a second search of the input."""
+    idx: np.ndarray
+    median: np.ndarray
+    variance: np.ndarray
+
+
+NO_INPUT_SIDE = InputSide(np.zeros(0, np.int64), np.zeros(0), np.zeros(0))
+
+
+def input_heights(source_tree, sources, points, normals):
+    """(M, k) heights along `normals` (M, 3) above each of `points` (M, 3) of its
+    INPUT_SIDE_NEIGHBOURS nearest `sources` (source_tree: their k-d tree)."""
+    _, around = source_tree.query(points, k=min(INPUT_SIDE_NEIGHBOURS, len(sources)), workers=-1)
+    around = around.reshape(len(points), -1)
+    return np.einsum("mkc,mc->mk", sources[around] - points[:, None], normals)
+
+
 def _face_input_side(points, tree, normals, sources, two_sided):
     """Step 5 of the module doc: points seen from both sides, among neighbours mostly seen from
     both sides, face the side of the local input median their own input position lies on.
-    tree: the k-d tree of `points`. Returns the normals and the indices of the points turned."""
+    tree: the k-d tree of `points`. Returns the normals and the `InputSide` of the points turned."""
     candidates = np.flatnonzero(two_sided)
     _, near = tree.query(points[candidates], k=min(TWO_SIDED_NEIGHBOURS, len(points)), workers=-1)
     idx = candidates[two_sided[near.reshape(len(candidates), -1)].mean(axis=1) >= TWO_SIDED_SHARE]
     if not len(idx):
-        return normals, idx
+        return normals, NO_INPUT_SIDE
     nrm = normals[idx]
     source_tree = tree if np.array_equal(sources, points) else cKDTree(sources)   # normals only: the same cloud
-    _, around = source_tree.query(points[idx], k=min(INPUT_SIDE_NEIGHBOURS, len(sources)), workers=-1)
-    around = around.reshape(len(idx), -1)
-    median = np.median(np.einsum("mkc,mc->mk", sources[around] - points[idx, None], nrm), axis=1)
+    heights = input_heights(source_tree, sources, points[idx], nrm)
+    median = np.median(heights, axis=1)
     side = np.einsum("mc,mc->m", sources[idx] - points[idx], nrm) - median
+    turn = np.where(side < 0, -1.0, 1.0)
     out = normals.copy()
-    out[idx] = nrm * np.where(side < 0, -1.0, 1.0)[:, None]
-    return out, idx
+    out[idx] = nrm * turn[:, None]
+    # Along the turned normal the heights change sign: the median with them, not the variance.
+    return out, InputSide(idx, median * turn, heights.var(axis=1))
 
 
 def _directions(count):
@@ -313,10 +337,9 @@ def orient_normals(points, normals, mode="outward", viewpoint=None, sources=None
     thin_walled, with_input_side: see `orient_outward` (no point is turned by step 5 but outward)."""
     if mode not in ORIENTATIONS:
         raise InputError(f"unknown orientation {mode!r}; choose one of {', '.join(ORIENTATIONS)}")
-    none_faced = np.zeros(0, np.int64)
     if mode == "none":
         out = np.asarray(normals, np.float64).copy()
-        return (out, none_faced) if with_input_side else out
+        return (out, NO_INPUT_SIDE) if with_input_side else out
     if mode == "viewpoint":
         if viewpoint is None:
             raise InputError("orientation 'viewpoint' needs a viewpoint (x, y, z)")
@@ -324,6 +347,6 @@ def orient_normals(points, normals, mode="outward", viewpoint=None, sources=None
         if vp.size != 3 or not np.isfinite(vp).all():
             raise InputError(f"viewpoint must be three finite numbers, got {viewpoint!r}")
         out = orient_toward(points, normals, vp)
-        return (out, none_faced) if with_input_side else out
+        return (out, NO_INPUT_SIDE) if with_input_side else out
     return orient_outward(np.asarray(points, np.float64), normals, sources=sources, thin_walled=thin_walled,
                           with_input_side=with_input_side)

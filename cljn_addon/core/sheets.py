@@ -17,7 +17,6 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .errors import Cancelled
-from .orient import INPUT_SIDE_NEIGHBOURS
 
 EM_ROUNDS = 12
 MIN_SHARE = 0.15           # each sheet holds at least this share of the patch
@@ -385,13 +384,11 @@ def split_merged_walls(original, denoised, normals, seed=0, cancel=None):
 SEAT_MIN_OFFSET = 0.5
 
 
-def seat_on_facing_face(sources, points, normals, rows, sigma):
-    """Points `rows` (turned to their input side by `orient`'s step 5) moved along their
-    oriented `normals` onto the face they face: the median height of their INPUT_SIDE_NEIGHBOURS
-    nearest `sources` (the median the side was read against) plus the half-thickness. Returns
-    the new positions of `rows` ((M, 3)); the caller bounds the motion."""
-    q, n = points[rows], normals[rows]
-    around = _neighbours(cKDTree(sources), q, INPUT_SIDE_NEIGHBOURS)
-    height = np.einsum("mkc,mc->mk", sources[around] - q[:, None], n)
-    half = np.sqrt(np.clip(height.var(axis=1) - sigma ** 2, 0.0, None))
-    return q + (np.median(height, axis=1) + np.maximum(half, SEAT_MIN_OFFSET * sigma))[:, None] * n
+def seat_on_facing_face(points, normals, median, variance, sigma):
+    """`points` (M, 3) that orient's step 5 turned to their input side, moved along their
+    oriented `normals` onto the face they face: the `median` height of their nearest inputs
+    (the median the side was read against) plus the half-thickness, from the `variance` of
+    those heights less the noise's (both from `orient.InputSide`). Returns the new positions;
+    the caller bounds the motion."""
+    half = np.sqrt(np.clip(variance - sigma ** 2, 0.0, None))
+    return points + (median + np.maximum(half, SEAT_MIN_OFFSET * sigma))[:, None] * normals
