@@ -7,7 +7,7 @@ from scipy.spatial import cKDTree
 
 import cljn_addon.core.sheets as sheets
 from cljn_addon.core.orient import input_heights
-from cljn_addon.core.sheets import fit_two_sheets, own_sheet_patches, seat_on_facing_face, split_merged_walls
+from cljn_addon.core.sheets import fit_two_sheets, in_faced_region, own_sheet_patches, seat_on_facing_face, split_merged_walls
 
 
 def _patches(m, n, height, sigma, seed):
@@ -258,3 +258,18 @@ def test_a_wall_too_thin_to_measure_is_seated_at_least_half_a_sigma_out():
     height = np.abs(seated[:, 2])
     assert np.quantile(height, 0.05) > 0.15 * sigma          # (0.24 sigma: the median strays)
     assert abs(np.median(height) / (sheets.SEAT_MIN_OFFSET * sigma) - 1) < 0.3
+
+
+def test_a_region_turned_as_a_whole_is_told_from_scattered_turned_points():
+    """Plane-placed points are seated only inside a region orient turned as a whole (a thin
+    tip), not where turned points are scattered (relief on one surface): `in_faced_region`."""
+    rng = np.random.default_rng(6)
+    points = np.c_[rng.random((20000, 2)), np.zeros(20000)]
+    tip = points[:, 0] < 0.3                                    # turned as a whole
+    scattered = (points[:, 0] > 0.5) & (rng.random(20000) < 0.5)  # half the points, here and there
+    faced = tip | scattered
+    inner_tip = np.flatnonzero(points[:, 0] < 0.25)
+    among_scattered = np.flatnonzero(scattered & (points[:, 0] > 0.55))
+    assert in_faced_region(points, faced, inner_tip).mean() > 0.99
+    assert in_faced_region(points, faced, among_scattered).mean() < 0.01
+    assert len(in_faced_region(points, faced, np.zeros(0, int))) == 0

@@ -22,7 +22,7 @@ from .patches import PatchSource, bbox_diagonal, framed_patches, from_frame
 from .refine import inflation, lrma_update
 from .risk import choose_by_risk, fitted_normals, probe_offsets
 from .rods import RodNormals, section_radius
-from .sheets import seat_on_facing_face, split_merged_walls
+from .sheets import in_faced_region, seat_on_facing_face, split_merged_walls
 
 ACTIVATION_BUDGET = 100_000_000   # floats per forward chunk: bounds memory on any cloud size
 
@@ -260,7 +260,8 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
     than the noise into one sheet, put each point back on the face on its own side
     (`sheets.split_merged_walls`; with outward orientation its normal faces that side); and
     where a wall or tip is too thin to split, the points outward orientation turned to their
-    input side go onto the face they face (`sheets.seat_on_facing_face`).
+    input side go onto the face they face (`sheets.seat_on_facing_face`; where a plane filter
+    placed them, only inside a region turned as a whole: `sheets.in_faced_region`).
     on_iteration(iteration, points): called after each moving pass with the whole cloud as it
     then stands (input coordinates and order), for studies such as tools/iteration_study.py.
     rod_normals (ours, default True): where a pass's patch held a rod's whole cross-section (a
@@ -515,14 +516,21 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
     if move_points and split_walls and len(faced) and np.isfinite(sigma):
         # Points of unsplit walls thinner than the noise now face their input side; they go
         # to that face so that their shading and position agree (`sheets.seat_on_facing_face`).
-        # Not where a plane filter placed them: one surface there (column_head's relief at
-        # 0.6%, where 98% of the points orientation turned by their input side were placed so:
-        # seated, Chamfer 4.09 -> 4.16).
+        # Where a plane filter placed them, only inside a region turned as a whole (a thin tip);
+        # scattered turned points there are relief on one surface (column_head at 0.6%, where
+        # 98% of the points orientation turned by their input side were placed so: all seated,
+        # Chamfer 4.09 -> 4.16).
         row_of = np.full(len(original), -1)
         row_of[inliers] = np.arange(len(inliers))
         rows = row_of[faced.idx]
         keep = np.flatnonzero(rows >= 0)
-        keep = keep[(side[rows[keep]] == 0) & ~plane_placed[rows[keep]]]
+        keep = keep[side[rows[keep]] == 0]
+        on_plane = np.flatnonzero(plane_placed[rows[keep]])
+        if len(on_plane):
+            turned = np.zeros(len(current), bool)
+            turned[rows[keep]] = True
+            inside = in_faced_region(current, turned, rows[keep[on_plane]])
+            keep = np.delete(keep, on_plane[~inside])
         if len(keep):
             rows = rows[keep]
             seated = seat_on_facing_face(current[rows], all_normals[faced.idx[keep]], faced.median[keep],
