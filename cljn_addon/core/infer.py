@@ -513,7 +513,7 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
         want = side[rows, None] * normals[rows]
         flip = np.einsum("ij,ij->i", all_normals[inliers[rows]], want) < 0
         all_normals[inliers[rows[flip]]] *= -1
-    if move_points and split_walls and len(faced) and np.isfinite(sigma):
+    if move_points and split_walls and len(faced.idx) and np.isfinite(sigma):
         # Points of unsplit walls thinner than the noise now face their input side; they go
         # to that face so that their shading and position agree (`sheets.seat_on_facing_face`).
         # Where a plane filter placed them, only inside a region turned as a whole (a thin tip);
