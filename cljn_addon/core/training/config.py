@@ -36,6 +36,10 @@ class TrainConfig:
     seed: int = 0
     init_weights: str = ""                  # start from a trained model (e.g. to fine-tune further)
     checkpoint_minutes: float = 5.0
+    max_minutes: float = 0.0                # > 0: a wall-clock budget; the cosine decay follows the
+                                            # clock and the running stage ends when it is spent
+    data_workers: int = 0                   # > 0: processes build the regressor's batches (a GPU
+                                            # outruns one core's patch gathering)
     bf16: bool = True
     device: str = "auto"
 

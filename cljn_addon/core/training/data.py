@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from ..config import ROTATION_ANGLES_DEG, TRAIN_NOISE_LEVELS
-from ..evaluation.shapes import normalise_unit_diagonal, sample_mesh, shape_mesh, thin_training_shape
+from ..evaluation.shapes import normalise_unit_diagonal, relief_training_shape, sample_mesh, shape_mesh, thin_training_shape
 from ..formats.meshes import read_mesh
 from ..patches import PatchSource, bbox_diagonal, pca_frames, to_frame
 
@@ -38,7 +38,7 @@ def _cache_key(source: str, n_points: int, seed: int) -> str:
 
 def load_clean_cloud(source, n_points, seed, cache_dir=None):
     """Clean samples of a mesh file, a named synthetic shape ("shape:box"), the i-th member
-    of the thin-part family ("thin:3") or (V, F) arrays.
+    of the thin-part family ("thin:3"), of the carved family ("relief:2") or (V, F) arrays.
 
     Samples of mesh files are cached as .npz under cache_dir (outside git).
     """
@@ -50,6 +50,8 @@ def load_clean_cloud(source, n_points, seed, cache_dir=None):
         return sample_clean(v, f, n_points, seed)
     if source.startswith("thin:"):
         return sample_clean(*thin_training_shape(int(source[len("thin:"):])), n_points, seed)
+    if source.startswith("relief:"):
+        return sample_clean(*relief_training_shape(int(source[len("relief:"):])), n_points, seed)
     cache = None
     if cache_dir is not None:
         stat = Path(source).stat()

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import os
 import time
 from pathlib import Path
@@ -54,6 +55,8 @@ def load_training_shapes(sources, cfg: TrainConfig, model_cfg, cache_dir=DEFAULT
             name = f"{str(source)[6:]} (synthetic)"
         elif str(source).startswith("thin:"):
             name = f"thin part {str(source)[5:]} (synthetic)"
+        elif str(source).startswith("relief:"):
+            name = f"carved solid {str(source)[7:]} (synthetic)"
         else:
             name = Path(source).stem
         clean, normals = load_clean_cloud(source, cfg.points_per_shape, cfg.seed + i, cache_dir)
@@ -64,7 +67,7 @@ def load_training_shapes(sources, cfg: TrainConfig, model_cfg, cache_dir=DEFAULT
     return shapes
 
 
-def _make_optimizer(model, cfg, stage, total_steps):
+def _make_optimizer(model, cfg, stage, total_steps, time_fraction=None):
     if stage == "contrastive":
         params = list(model.encoder.parameters()) + list(model.head.parameters())
         opt = torch.optim.Adam(params, lr=cfg.contrastive_lr, weight_decay=cfg.weight_decay)
@@ -78,8 +81,40 @@ def _make_optimizer(model, cfg, stage, total_steps):
             opt = torch.optim.Adam(params, lr=cfg.regression_lr)
         else:
             raise InputError(f"unknown optimizer {cfg.regression_optimizer!r} (sgd or adam)")
-    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=max(total_steps, 1))
+    if time_fraction is not None:        # cosine over the wall-clock budget
+        sched = torch.optim.lr_scheduler.LambdaLR(
+            opt, lambda _step: 0.5 * (1.0 + math.cos(math.pi * min(time_fraction(), 1.0))))
+    else:
+        sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=max(total_steps, 1))
     return opt, sched
+
+
+class _RegressionBatches(torch.utils.data.Dataset):
+    """Batch i of the regressor stage, drawn with its own seeded generator so worker
+    processes make the same batches in any order and a resumed run continues the sequence."""
+
+    def __init__(self, shapes, cfg):
+        self.shapes, self.cfg = shapes, cfg
+
+    def __getitem__(self, step):
+        cfg = self.cfg
+        return regression_batch(self.shapes, cfg.regression_batch, cfg.gt_points,
+                                np.random.default_rng([cfg.seed, 2, int(step)]), own_side=cfg.gt_side == "own")
+
+
+def _quiet_worker(_worker_id):
+    torch.set_num_threads(1)
+
+
+def _worker_batches(run, shapes):
+    """The regressor's remaining batches from cfg.data_workers processes (fork: the shapes
+    and their k-d trees are shared, not copied)."""
+    steps = range(run.step, run.stage_total)
+    loader = torch.utils.data.DataLoader(
+        _RegressionBatches(shapes, run.cfg), batch_size=None, sampler=steps,
+        num_workers=run.cfg.data_workers, worker_init_fn=_quiet_worker, prefetch_factor=4,
+        multiprocessing_context="fork" if os.name == "posix" else None)
+    return iter(loader)
 
 
 def make_config(config: TrainConfig | None = None, quick=False, **overrides) -> TrainConfig:
@@ -145,10 +180,17 @@ class _Run:
         torch.set_rng_state(state["torch_rng"])
         log(f"resumed at stage {self.stage}, step {self.step}")
 
+    def time_fraction(self) -> float:
+        return self.seconds() / (60.0 * self.cfg.max_minutes)
+
+    def out_of_time(self) -> bool:
+        return self.cfg.max_minutes > 0 and self.time_fraction() >= 1.0
+
     def make_optimizer(self, state=None):
         self.opt, self.sched = _make_optimizer(self.model, self.cfg, self.stage,
                                                self.steps["contrastive" if self.stage == "contrastive"
-                                                          else "regression"])
+                                                          else "regression"],
+                                               self.time_fraction if self.cfg.max_minutes > 0 else None)
         if state is not None and self.stage != "done":
             self.opt.load_state_dict(state["optimizer"])
             self.sched.load_state_dict(state["scheduler"])
@@ -166,8 +208,12 @@ class _Run:
         return self.elapsed + (time.time() - self.t_start)
 
     def next_stage(self):
-        """The current stage is complete: move on (a fresh optimiser for the regressor)."""
-        if self.stage == "contrastive":
+        """The current stage is complete (or the budget spent): move on (a fresh optimiser
+        for the regressor)."""
+        self.steps[self.stage] = min(self.steps[self.stage], self.step)    # steps actually done
+        if self.out_of_time():
+            self.stage = "done"
+        elif self.stage == "contrastive":
             self.stage, self.step = "regression", 0
             self.make_optimizer()
         else:
@@ -180,12 +226,15 @@ class _Run:
             z = self.model.project(torch.from_numpy(np.concatenate([p, q])).to(self.device))
         return nt_xent(z[: len(p)], z[len(p):], self.loss_cfg.temperature), {}
 
-    def regression_loss(self, shapes):
+    def regression_loss(self, shapes, batch=None):
+        """The joint loss on `batch` (regression_batch's arrays) or on a batch drawn here."""
         cfg, model, dev = self.cfg, self.model, self.device
         if not cfg.finetune_encoder:
             model.encoder.eval()          # frozen: BatchNorm uses its running stats
-        patches, gt, gt_n, tgt, tgt_n = regression_batch(shapes, cfg.regression_batch, cfg.gt_points, self.rng,
-                                                           own_side=cfg.gt_side == "own")
+        if batch is None:
+            batch = regression_batch(shapes, cfg.regression_batch, cfg.gt_points, self.rng,
+                                     own_side=cfg.gt_side == "own")
+        patches, gt, gt_n, tgt, tgt_n = (np.asarray(a) for a in batch)
         with autocast(dev, cfg.bf16):
             with torch.enable_grad() if cfg.finetune_encoder else torch.no_grad():
                 feats = model.encoder(torch.from_numpy(patches).to(dev))
@@ -200,13 +249,13 @@ class _Run:
         return joint_loss(disp, normal, torch.from_numpy(gt).to(dev), torch.from_numpy(gt_n).to(dev),
                           self.loss_cfg, normal_target=index_normal, normal_loss_kind=cfg.normal_loss)
 
-    def train_step(self, shapes):
+    def train_step(self, shapes, batch=None):
         """One optimiser step of the current stage; returns (loss, loss parts)."""
         self.model.train()
         if self.stage == "contrastive":
             loss, parts = self.contrastive_loss(shapes)
         else:
-            loss, parts = self.regression_loss(shapes)
+            loss, parts = self.regression_loss(shapes, batch)
         self.opt.zero_grad(set_to_none=True)
         loss.backward()
         self.opt.step()
@@ -237,20 +286,27 @@ def _load_checkpoint(ckpt_path, cfg, resume, log):
 def _train_loop(run, shapes, out, progress, cancel):
     """Steps until both stages are done; checkpoints on schedule, on stage ends and on cancel."""
     last_ckpt = time.time()
+    batches = None
     with open(out / "log.jsonl", "a") as log_file:
         while run.stage != "done":
-            if run.step >= run.stage_total:
+            if run.step >= run.stage_total or run.out_of_time():
                 run.next_stage()
+                batches = None
                 continue
             if cancel is not None and cancel.is_set():
                 run.save_checkpoint()
                 raise Cancelled("training cancelled; resume continues from the last checkpoint")
-            loss, parts = run.train_step(shapes)
+            if batches is None and run.stage == "regression" and run.cfg.data_workers > 0:
+                batches = _worker_batches(run, shapes)
+            loss, parts = run.train_step(shapes, next(batches) if batches is not None else None)
             if run.step % 10 == 0 or run.step == run.stage_total:
                 log_file.write(json.dumps(run.log_record(loss, parts)) + "\n")
                 log_file.flush()
             if progress is not None:
-                progress(run.done_steps / max(run.total, 1),
+                fraction = run.done_steps / max(run.total, 1)
+                if run.cfg.max_minutes > 0:
+                    fraction = max(fraction, min(run.time_fraction(), 1.0))
+                progress(fraction,
                          f"{run.stage} {run.step}/{run.stage_total}, loss {loss:.4f}")
             if time.time() - last_ckpt > run.cfg.checkpoint_minutes * 60:
                 run.save_checkpoint()
