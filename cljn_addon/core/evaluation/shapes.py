@@ -428,7 +428,8 @@ def relief_training_shape(index, seed=0):
     """The index-th member of a seeded family of carved solids (training only): ellipsoids
     carved like `carved_sphere` with bumps 3-12% of the size across and 0.3-3% high, relief
     at the noise's own scale (a carved capital, a statue's hair). The eval's carved_sphere
-    (wavelength 5%, depth 2%, a sphere) is one fixed instance outside the family's draws."""
+    (wavelength 5%, depth 2%, a sphere) lies inside the family's range, but no draw is that
+    instance: each is an ellipsoid with axes drawn at random."""
     rng = np.random.default_rng([seed, index, 91])
     wavelength = rng.uniform(0.03, 0.12)
     depth = rng.uniform(0.003, 0.03)

@@ -106,12 +106,17 @@ def _quiet_worker(_worker_id):
     torch.set_num_threads(1)
 
 
+def _as_built(batch):
+    """Batches cross from the workers as the numpy arrays they were built as."""
+    return batch
+
+
 def _worker_batches(run, shapes):
     """The regressor's remaining batches from cfg.data_workers processes (fork: the shapes
     and their k-d trees are shared, not copied)."""
     steps = range(run.step, run.stage_total)
     loader = torch.utils.data.DataLoader(
-        _RegressionBatches(shapes, run.cfg), batch_size=None, sampler=steps,
+        _RegressionBatches(shapes, run.cfg), batch_size=None, sampler=steps, collate_fn=_as_built,
         num_workers=run.cfg.data_workers, worker_init_fn=_quiet_worker, prefetch_factor=4,
         multiprocessing_context="fork" if os.name == "posix" else None)
     return iter(loader)
@@ -234,7 +239,7 @@ class _Run:
         if batch is None:
             batch = regression_batch(shapes, cfg.regression_batch, cfg.gt_points, self.rng,
                                      own_side=cfg.gt_side == "own")
-        patches, gt, gt_n, tgt, tgt_n = (np.asarray(a) for a in batch)
+        patches, gt, gt_n, tgt, tgt_n = batch
         with autocast(dev, cfg.bf16):
             with torch.enable_grad() if cfg.finetune_encoder else torch.no_grad():
                 feats = model.encoder(torch.from_numpy(patches).to(dev))
