@@ -279,6 +279,9 @@ class CloudCommand:
         rods = float(getattr(res, "rod_share", 0.0) or 0.0)
         if rods > 0:
             details += f"{rods:.1%} on rods (normals from the rod's section), "
+        rims = float(getattr(res, "rim_share", 0.0) or 0.0)
+        if rims > 0:
+            details += f"{rims:.1%} beyond thin parts' edges (normals of their rims), "
         plane = float(getattr(res, "plane_share", 0.0) or 0.0)
         if plane > 0:
             details += f"{plane:.1%} by a plane filter where it beat the network (relief kept), "
@@ -296,6 +299,7 @@ class CloudCommand:
                 "noise_sigma": sigma if math.isfinite(sigma) else None, "noise_given": given,
                 "displacement_bound": bound if math.isfinite(bound) else None,
                 "thin_walled": thin, "split_share": round(split, 4), "rod_share": round(rods, 4),
+                "rim_share": round(rims, 4),
                 "plane_share": round(plane, 4),
                 "passes": passes, "stopped_by_noise": stopped,
                 "seconds": round(seconds, 3), "ran_on": ran_on}

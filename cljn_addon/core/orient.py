@@ -139,7 +139,8 @@ def orient_outward(points: np.ndarray, normals: np.ndarray, k: int = 10, sources
     # +1/-1: the side each clearly seen point is seen from, relative to its input normal; 0 if
     # not clearly seen. An edge whose two ends are seen from opposite sides is not smooth.
     view_sign, two_sided = clear_view_signs(points, normals, with_two_sided=True)
-    if np.mean(view_sign != 0) < SEEN_CLOSED_SHARE:
+    closed = bool(np.mean(view_sign != 0) >= SEEN_CLOSED_SHARE)
+    if not closed:
         # An open scan (one sweep of a range scanner, a terrain, vegetation): most points are
         # seen from both sides or not at all, and the few clear votes would scramble it.
         view_sign[:] = 0
@@ -206,17 +207,19 @@ def orient_outward(points: np.ndarray, normals: np.ndarray, k: int = 10, sources
     # 5. Walls thinner than the noise: the side of the input each point lay on.
     if sources is not None and two_sided.any():
         oriented, faced = _face_input_side(points, tree, oriented, np.asarray(sources, np.float64), two_sided)
-    return (oriented, faced) if with_input_side else oriented
+    return (oriented, faced._replace(closed=closed)) if with_input_side else oriented
 
 
 class InputSide(NamedTuple):
     """The points step 5 turned to their input side (`idx`, rows of the oriented cloud) and,
     along each one's oriented normal, the median and the variance of the heights of its
     INPUT_SIDE_NEIGHBOURS nearest inputs (`input_heights`): what `sheets.seat_on_facing_face`
-    needs to put them on the face they face, without a second search of the input."""
+    needs to put them on the face they face, without a second search of the input. closed: most
+    points were clearly seen from one side (a closed object, not an open scan)."""
     idx: np.ndarray
     median: np.ndarray
     variance: np.ndarray
+    closed: bool = False
 
 
 NO_INPUT_SIDE = InputSide(np.zeros(0, np.int64), np.zeros(0), np.zeros(0))
