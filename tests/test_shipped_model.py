@@ -391,10 +391,11 @@ def test_star_prism_tips_placed_by_a_plane_filter_are_seated_too(shipped, monkey
 
     noisy, _, _ = sample_shape("star_prism", 30000, noise=0.011, seed=8)
     surface = MeshDistance(*shape_mesh("star_prism"))
-    seated = denoise(noisy, shipped, iterations="auto")
+    # The seating alone: rim normals (`test_rims.py`) change both runs' normals at the tips.
+    seated = denoise(noisy, shipped, iterations="auto", rim_normals=False)
     assert seated.plane_share > 0.02
     monkeypatch.setattr(infer, "in_faced_region", lambda points, faced, rows: np.zeros(len(rows), bool))
-    left = denoise(noisy, shipped, iterations="auto")
+    left = denoise(noisy, shipped, iterations="auto", rim_normals=False)
     (d_seated, n_seated), (d_left, n_left) = surface.nearest(seated.points), surface.nearest(left.points)
     assert sign_agreement(seated.normals, n_seated) > sign_agreement(left.normals, n_left) + 0.003
     assert sign_agreement(seated.normals, n_seated) >= 0.985
