@@ -444,6 +444,15 @@ def test_modal_run_updates_progress_and_esc_cancels(bx):
         raise AssertionError("the job did not finish")
 
     ops._run_synchronously = lambda context: False
+    computed = []                        # the engine's results, to check the report's wording against
+    compute = ops.pipeline.compute
+
+    def recording_compute(*args, **kwargs):
+        results = compute(*args, **kwargs)
+        computed.extend(results)
+        return results
+
+    ops.pipeline.compute = recording_compute
     before = bx.local_points(obj)
     ctx = context()
     op = Denoise()
@@ -460,6 +469,9 @@ def test_modal_run_updates_progress_and_esc_cancels(bx):
     assert ops._active_job is None and bpy.ops.cljn.denoise_points.poll()
     assert not np.array_equal(bx.local_points(obj), before)
     assert op.reports and op.reports[-1][0] == "INFO", op.reports
+    steps = computed[-1].steps_taken()
+    assert all(step in op.reports[-1][1] for step in steps), (steps, op.reports)
+    print("steps reported:", steps)
 
     # Esc: cancelled, and the object is exactly as it was.
     snapshot = {n: bx.attribute(obj, n).tobytes() for n in bx.attribute_names(obj) if not n.startswith(".")}
@@ -472,6 +484,7 @@ def test_modal_run_updates_progress_and_esc_cancels(bx):
     assert op.reports[-1] == ("WARNING", "Denoising cancelled: nothing was changed"), op.reports
     assert {n: bx.attribute(obj, n).tobytes() for n in snapshot} == snapshot
     assert ops._active_job is None and ctx.workspace.texts[-1] is None
+    ops.pipeline.compute = compute
 
 
 @in_blender(timeout=400)

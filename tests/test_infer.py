@@ -206,3 +206,23 @@ def test_on_iteration_sees_every_pass_and_the_last_is_the_result(tiny):
     assert [i for i, _ in seen] == [1, 2, 3]
     assert np.array_equal(seen[-1][1], res.points)
     assert not np.array_equal(seen[0][1], seen[1][1])
+
+
+def test_steps_taken_name_each_extra_step_once_and_nothing_when_none_ran():
+    """The wording the command line and the extension both report (one implementation)."""
+    from cljn_addon.core.infer import DenoiseResult
+
+    empty = np.zeros((0, 3))
+    plain = DenoiseResult(points=empty, normals=empty, outliers=np.zeros(0, bool),
+                          displacement=np.zeros(0), seconds=0.0, iterations=1)
+    assert plain.steps_taken() == []
+    busy = DenoiseResult(points=empty, normals=empty, outliers=np.zeros(0, bool), displacement=np.zeros(0),
+                         seconds=0.0, iterations=3, thin_walled=True, split_share=0.012, rod_share=0.25,
+                         rim_share=0.031, plane_share=0.5)
+    steps = busy.steps_taken()
+    assert len(steps) == 5
+    assert steps[0].startswith("thin-walled")
+    assert "1.2% on merged thin walls" in steps[1]
+    assert "25.0% on rods" in steps[2]
+    assert "3.1% beyond thin parts' edges" in steps[3]
+    assert "50.0% by a plane filter" in steps[4]

@@ -284,9 +284,11 @@ class _PointsOperator(_JobOperator):
             text += f"; {'/'.join(map(str, passes))} pass{'' if passes == [1] else 'es'}"
             if any(getattr(r, "stopped_early", False) for r in results):
                 text += " (auto stopped once points had moved as far as the noise)"
-        plane = [float(getattr(r, "plane_share", 0.0) or 0.0) for r in results]
-        if any(plane):
-            text += f"; {max(plane):.0%} by a plane filter where it beat the network (relief kept)"
+        # The engine's own words for its extra steps (the command line prints the same), per object
+        for snap, result in zip(self._snapshots, results):
+            steps = result.steps_taken()
+            if steps:
+                text += f"; {snap.name + ': ' if len(results) > 1 else ''}{', '.join(steps)}"
         self.report({"INFO"}, text)
         return {"FINISHED"}
 

@@ -271,20 +271,11 @@ class CloudCommand:
                    + (f" (no point moved more than {bound:.4g}), " if math.isfinite(bound) else ", ")
                    if math.isfinite(sigma) else "")
         thin = bool(getattr(res, "thin_walled", False))
-        if thin:
-            details += "thin-walled (own-side patches), "
         split = float(getattr(res, "split_share", 0.0) or 0.0)
-        if split > 0:
-            details += f"{split:.1%} on merged thin walls put back on their own face, "
         rods = float(getattr(res, "rod_share", 0.0) or 0.0)
-        if rods > 0:
-            details += f"{rods:.1%} on rods (normals from the rod's section), "
         rims = float(getattr(res, "rim_share", 0.0) or 0.0)
-        if rims > 0:
-            details += f"{rims:.1%} beyond thin parts' edges (normals of their rims), "
         plane = float(getattr(res, "plane_share", 0.0) or 0.0)
-        if plane > 0:
-            details += f"{plane:.1%} by a plane filter where it beat the network (relief kept), "
+        details += "".join(step + ", " for step in res.steps_taken())
         passes = int(getattr(res, "iterations", 0))
         stopped = bool(getattr(res, "stopped_early", False))
         details += f"{passes} pass{'es' if passes != 1 else ''}" + (" (stopped: moved as far as the noise), " if stopped else ", ")

@@ -46,6 +46,22 @@ class DenoiseResult:
     rim_share: float = 0.0                   # share of points beyond a thin part's edge, given its rim's normal
     ran_on: str = ""                         # device and backend, e.g. "cpu (numpy)"
 
+    def steps_taken(self) -> list[str]:
+        """What the engine did beyond the passes, in words, for the command line and the
+        extension's report (one wording for both); empty when nothing applied."""
+        steps = []
+        if self.thin_walled:
+            steps.append("thin-walled (own-side patches)")
+        if self.split_share > 0:
+            steps.append(f"{self.split_share:.1%} on merged thin walls put back on their own face")
+        if self.rod_share > 0:
+            steps.append(f"{self.rod_share:.1%} on rods (normals from the rod's section)")
+        if self.rim_share > 0:
+            steps.append(f"{self.rim_share:.1%} beyond thin parts' edges (normals of their rims)")
+        if self.plane_share > 0:
+            steps.append(f"{self.plane_share:.1%} by a plane filter where it beat the network (relief kept)")
+        return steps
+
 
 def validate_points(points) -> np.ndarray:
     """(N, 3) float64 copy of the input, or an InputError that says what is wrong."""
