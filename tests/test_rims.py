@@ -5,7 +5,7 @@ import pytest
 from cljn_addon.core import denoise, load_model
 from cljn_addon.core.evaluation.metrics import MeshDistance, msae, sign_agreement
 from cljn_addon.core.evaluation.shapes import sample_shape, shape_mesh
-from cljn_addon.core.rims import edge_share_ahead, rim_normals
+from cljn_addon.core.rims import RIM_LEAN, edge_share_ahead, rim_normals
 
 
 @pytest.mark.parametrize("reach, offset", [(2.0, 0.0), (3.0, 0.0), (2.0, 0.5), (4.0, -0.5)])
@@ -89,6 +89,16 @@ def test_the_denoise_gives_a_thin_bracket_s_rims_their_normals(shipped):
     _, facing = MeshDistance(*shape_mesh("l_bracket")).nearest(on.points)
     assert msae(on.normals, facing) < 0.9 * msae(off.normals, facing)
     assert sign_agreement(on.normals[changed], facing[changed]) > sign_agreement(off.normals[changed], facing[changed])
+    # The lean toward each point's own face: the same points, each 11 degrees off the rim's
+    # normal, and nearer the clean surface's than with no lean (50K at 1.5%: 0.1403 -> 0.1388).
+    kept = ~off.outliers
+    rim, upright = rim_normals(off.points[kept], off.normals[kept], off.noise_sigma, lean=0.0)
+    assert np.array_equal(np.flatnonzero(kept)[rim], np.flatnonzero(changed))
+    tilt = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", on.normals[changed], upright), -1, 1)))
+    assert np.allclose(tilt, np.degrees(np.arctan(RIM_LEAN)), atol=0.01)
+    unleaned = off.normals.copy()
+    unleaned[changed] = upright
+    assert msae(on.normals, facing) < msae(unleaned, facing)
 
 
 def test_an_open_scan_s_border_is_not_a_rim(shipped):

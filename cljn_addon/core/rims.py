@@ -43,6 +43,13 @@ CHUNK = 4_000
 # an open mesh, at 0.6%: 76% of the points read as beyond an edge lie within 3 sigma of its
 # holes' borders, output MSAE 0.4249 -> 0.4297 without this, 0.4247 with it).
 OPPOSED_SHARE = 0.05
+# The passes seat a point beyond the edge on (or near) its own face's plane, at the corner where
+# that face meets the rim; there the nearest surface is the rim or the face, so the normal leans
+# from the rim's toward the face's, by atan(RIM_LEAN) (11 degrees). Output MSAE against the clean
+# surface nearest each point, rim normal without lean -> with it: l_bracket 0.1403 -> 0.1388,
+# thin_plate 0.0642 -> 0.0613, column_head 0.5625 -> 0.5606 (50K, 1.5%); sign on the star prism
+# (30K, 2%) 98.40% -> 98.73%. (0.1 and 0.3 lie within 1% of it on each.)
+RIM_LEAN = 0.2
 
 
 def edge_share_ahead(reach_sigmas, offset_sigmas=0.0, grid=801):
@@ -55,13 +62,14 @@ def edge_share_ahead(reach_sigmas, offset_sigmas=0.0, grid=801):
     return float(density[x > 0].sum() / density.sum())
 
 
-def rim_normals(points, normals, sigma, cancel=None):
+def rim_normals(points, normals, sigma, lean=RIM_LEAN, cancel=None):
     """The points (N, 3) that lie beyond the edge of their sheet (bool mask) and, for those, the
     rim's outward normal (M, 3): in each point's tangent plane (`normals`), the direction away
     from the centroid of its neighbours within `REACH_SIGMAS` sigma (wider where the cloud holds
     fewer than `LEAST_NEIGHBOURS` there), where fewer than `edge_share_ahead` (at that reach) of
     them lie ahead of it and at least `OPPOSED_SHARE` of them face away from it (`normals` are
-    oriented outward). No reading on a cloud too sparse for its noise."""
+    oriented outward); leaning toward the point's own normal by `lean` (`RIM_LEAN`). No reading
+    on a cloud too sparse for its noise."""
     points = np.asarray(points, np.float64)
     normals = np.asarray(normals, np.float64)
     rim = np.zeros(len(points), bool)
@@ -108,4 +116,5 @@ def rim_normals(points, normals, sigma, cancel=None):
         opposed = ((np.einsum("mkc,mc->mk", sample_normals[near], n) < 0) & within).sum(axis=1) / np.maximum(count, 1)
         rim[rows] = (count >= MIN_NEIGHBOURS) & (length > 0) & (share < edge_share) & (opposed >= OPPOSED_SHARE)
         outward[rows] = away
-    return rim, outward[rim]
+    leaned = outward[rim] + lean * normals[rim]
+    return rim, leaned / np.linalg.norm(leaned, axis=1, keepdims=True)
