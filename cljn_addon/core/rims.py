@@ -48,7 +48,8 @@ OPPOSED_SHARE = 0.05
 # from the rim's toward the face's, by atan(RIM_LEAN) (11 degrees). Output MSAE against the clean
 # surface nearest each point, rim normal without lean -> with it: l_bracket 0.1403 -> 0.1388,
 # thin_plate 0.0642 -> 0.0613, column_head 0.5625 -> 0.5606 (50K, 1.5%); sign on the star prism
-# (30K, 2%) 98.40% -> 98.73%. (0.1 and 0.3 lie within 1% of it on each.)
+# (30K, 2%) 98.40% -> 98.73%. (0.1 loses 1-3% of that; 0.3 gains 1-2% more on most but loses on
+# l_bracket and the star prism's sign at 0.6 / 1.1%: README, "The lean toward the point's own face".)
 RIM_LEAN = 0.2
 
 
