@@ -263,23 +263,19 @@ class CloudCommand:
         n = int(len(res.points))
         outliers = int(np.count_nonzero(res.outliers))
         disp = float(np.mean(res.displacement)) if n else 0.0
-        seconds = float(getattr(res, "seconds", 0.0) or 0.0)
-        sigma = float(getattr(res, "noise_sigma", float("nan")))
-        bound = float(getattr(res, "displacement_bound", float("inf")))
-        given = getattr(self.options, "noise_sigma", None) is not None
+        # res is a core.DenoiseResult (denoise and normals-only alike): its fields always exist.
+        seconds = float(res.seconds)
+        sigma = float(res.noise_sigma)
+        bound = float(res.displacement_bound)
+        given = self.options.noise_sigma is not None
         details = (f"{'given' if given else 'estimated'} noise {sigma:.4g}"
                    + (f" (no point moved more than {bound:.4g}), " if math.isfinite(bound) else ", ")
                    if math.isfinite(sigma) else "")
-        thin = bool(getattr(res, "thin_walled", False))
-        split = float(getattr(res, "split_share", 0.0) or 0.0)
-        rods = float(getattr(res, "rod_share", 0.0) or 0.0)
-        rims = float(getattr(res, "rim_share", 0.0) or 0.0)
-        plane = float(getattr(res, "plane_share", 0.0) or 0.0)
         details += "".join(step + ", " for step in res.steps_taken())
-        passes = int(getattr(res, "iterations", 0))
-        stopped = bool(getattr(res, "stopped_early", False))
+        passes = int(res.iterations)
+        stopped = bool(res.stopped_early)
         details += f"{passes} pass{'es' if passes != 1 else ''}" + (" (stopped: moved as far as the noise), " if stopped else ", ")
-        ran_on = getattr(res, "ran_on", "")
+        ran_on = res.ran_on
         where = f"on {ran_on}, " if ran_on else ""
         line = (f"{label}: {n} points, {outliers} outliers flagged, "
                 f"mean displacement {disp:.4g}, {details}{where}{seconds:.1f} s")
@@ -289,9 +285,9 @@ class CloudCommand:
         return {"points": n, "outliers": outliers, "mean_displacement": disp,
                 "noise_sigma": sigma if math.isfinite(sigma) else None, "noise_given": given,
                 "displacement_bound": bound if math.isfinite(bound) else None,
-                "thin_walled": thin, "split_share": round(split, 4), "rod_share": round(rods, 4),
-                "rim_share": round(rims, 4),
-                "plane_share": round(plane, 4),
+                "thin_walled": bool(res.thin_walled), "split_share": round(float(res.split_share), 4),
+                "rod_share": round(float(res.rod_share), 4), "rim_share": round(float(res.rim_share), 4),
+                "plane_share": round(float(res.plane_share), 4),
                 "passes": passes, "stopped_by_noise": stopped,
                 "seconds": round(seconds, 3), "ran_on": ran_on}
 
