@@ -35,3 +35,28 @@ def test_normals_only_on_cuda_matches_the_cpu():
             for dev in ("cuda", "cpu")}
     cos = np.einsum("ij,ij->i", runs["cuda"].normals, runs["cpu"].normals)
     assert np.median(cos) > 0.999 and (cos > 0).mean() > 0.995
+
+
+def test_training_batches_on_cuda_match_the_cpu_builder():
+    """The device batch builder (what `train` uses on a CUDA GPU) draws on the GPU what it draws
+    on the CPU: the same shapes, ball statistics and frames (the random streams differ)."""
+    import time
+
+    from cljn_addon.core.training.data import load_clean_cloud, make_training_shape
+    from cljn_addon.core.training.device_batches import DeviceBatches
+
+    shapes = [make_training_shape(s, *load_clean_cloud(s, 100_000, 5), 128, 0.05, 11)
+              for s in ("shape:thin_plate", "shape:box", "shape:star_prism")]
+    on = {dev: DeviceBatches(shapes, dev, seed=3) for dev in ("cuda", "cpu")}
+    got = {dev: b.regression(1024, 256, b.generator("regression", 0), own_side=True) for dev, b in on.items()}
+    for a, b in zip(got["cuda"], got["cpu"]):
+        assert a.is_cuda and a.shape == b.shape and a.dtype == b.dtype
+    for i in (0, 1):
+        mean = {dev: got[dev][i].norm(dim=2).mean().item() for dev in got}
+        assert abs(mean["cuda"] / mean["cpu"] - 1) < 0.03, mean
+    torch.cuda.synchronize()
+    t0 = time.time()
+    for step in range(20):
+        on["cuda"].regression(1024, 256, on["cuda"].generator("regression", step), own_side=True)
+    torch.cuda.synchronize()
+    print(f"device batches: {20 * 1024 / (time.time() - t0):,.0f} patches/s")

@@ -28,6 +28,24 @@ def test_point2surface_matches_analytic_box_distance():
     assert np.allclose(metrics.MeshDistance(v, f).distance(p), truth, atol=1e-12)
 
 
+
+def test_beyond_a_box_edge_either_face_s_normal_is_a_right_sign():
+    v, f = shape_mesh("box")
+    half = v.max(axis=0)
+    surface = metrics.MeshDistance(v, f)
+    x, y = np.eye(3)[0], np.eye(3)[1]
+    # Beyond the edge where the +x and +y faces meet, and off it above the +x face's middle.
+    beyond = np.array([half * [1, 1, 0] + [0.1, 0.1, 0.0]] * 4)
+    above = np.array([[half[0] + 0.1, 0.0, 0.0]] * 4)
+    normals = np.array([x, y, -x, (x + y) / np.sqrt(2)])
+    _, facing = surface.nearest(beyond)
+    # nearest() returns one of the two faces meeting there, the same for every copy of the point.
+    assert np.allclose(facing, x) or np.allclose(facing, y)
+    assert metrics.sign_agreement(normals, facing) == 0.5            # tie broken: x or y counts wrong
+    assert surface.sign_at_any_nearest_face(beyond, normals).tolist() == [True, True, False, True]
+    # Off the edge the nearest face alone decides: y lies in the +x face's plane.
+    assert surface.sign_at_any_nearest_face(above, normals).tolist() == [True, False, False, True]
+
 def test_sharp_feature_mask_finds_box_edges_only():
     _, clean, normals = sample_shape("box", 30000, seed=2)
     mask = metrics.sharp_feature_mask(clean, normals)

@@ -163,3 +163,76 @@ def test_a_run_on_a_clock_stops_when_its_minutes_are_spent(tmp_path):
         assert abs(rec["lr"] - base * 0.5 * (1 + np.cos(np.pi * min(rec["time"] / budget, 1.0)))) < 0.05 * base
     assert log[-1]["lr"] < 0.1 * base
     assert load_model(weights).config.preset == "tiny"
+
+
+def _plate_and_box():
+    from cljn_addon.core.training.data import load_clean_cloud, make_training_shape
+
+    # Balls of ~250-1,000 points for 64-point patches: a biased pick would show.
+    return [make_training_shape(s, *load_clean_cloud(s, 20000, 5), 64, 0.08, 11, noise_levels=(0.0, 0.005, 0.01))
+            for s in ("shape:thin_plate", "shape:box")]
+
+
+def test_device_batches_draw_what_the_cpu_batches_draw():
+    """The torch batch builder (for GPUs; run here on the CPU) against data.py's: the same
+    shapes and frames, patches uniform over the ball (not its nearest points), ground truth
+    from the whole ball and from the centre's own side when asked, each step its own seeded batch."""
+    from cljn_addon.core.patches import pca_frames
+    from cljn_addon.core.training import device_batches
+    from cljn_addon.core.training.data import contrastive_batch, regression_batch
+
+    shapes = _plate_and_box()
+    builder = device_batches.DeviceBatches(shapes, "cpu", seed=3)
+    ours = [a.numpy() for a in builder.regression(512, 128, builder.generator("regression", 0))]
+    theirs = regression_batch(shapes, 512, 128, np.random.default_rng(0))
+    for a, b in zip(ours, theirs):
+        assert a.shape == b.shape and a.dtype == b.dtype == np.float32
+    patches, gt, gt_n, target, target_n = ours
+    assert np.linalg.norm(patches, axis=2).max() <= 1 + 1e-5
+    assert np.linalg.norm(gt, axis=2).max() <= 1 + 1e-5
+    # Uniform over the ball: the mean distance from the centre matches the CPU path's (a
+    # nearest-first pick would be far closer), and so does the spread across the surface.
+    for pick in (lambda x: np.linalg.norm(x, axis=2).mean(), lambda x: np.abs(x[..., 2]).mean()):
+        assert abs(pick(patches) / pick(theirs[0]) - 1) < 0.05
+    # The truth is the whole ball's clean surface: as far out on average as the patches. (data.py
+    # takes the 4 x 128 nearest clean points, a smaller disc where the plate's ball holds ~800.)
+    assert abs(np.linalg.norm(gt, axis=2).mean() / np.linalg.norm(patches, axis=2).mean() - 1) < 0.05
+    assert np.linalg.norm(theirs[1], axis=2).mean() < 0.95 * np.linalg.norm(gt, axis=2).mean()
+    # PCA frames: the rough normal is z, and the torch frames are data.py's frames.
+    cov = np.einsum("bni,bnj->bij", patches, patches)
+    assert np.all(cov[:, 2, 2] <= cov[:, 1, 1] + 1e-4) and np.all(cov[:, 1, 1] <= cov[:, 0, 0] + 1e-4)
+    assert np.allclose(np.abs(cov[:, 0, 1]) + np.abs(cov[:, 0, 2]) + np.abs(cov[:, 1, 2]), 0, atol=1e-3)
+    local = torch.randn(64, 100, 3, generator=torch.Generator().manual_seed(0)) * torch.tensor([1.0, 0.5, 0.1])
+    assert np.allclose(device_batches.pca_frames(local).numpy(), pca_frames(local.numpy()), atol=1e-6)
+    assert np.allclose(np.linalg.norm(target_n, axis=1), 1, atol=1e-5)
+    # The centre's own side: a 1.5% plate's far face is in the plain truth, not in the own-side one.
+    plate = device_batches.DeviceBatches(shapes[:1], "cpu")
+    _, _, n_all, _, t_all = plate.regression(256, 128, plate.generator("regression", 1))
+    _, _, n_own, _, t_own = plate.regression(256, 128, plate.generator("regression", 1), own_side=True)
+    assert (torch.einsum("bmc,bc->bm", n_all, t_all) < -0.9).float().mean() > 0.2
+    assert (torch.einsum("bmc,bc->bm", n_own, t_own) < -0.5).sum() == 0
+    # Seeded per step; contrastive pairs like data.py's (Q rotated by one of the paper's angles).
+    again = builder.regression(512, 128, builder.generator("regression", 0))
+    assert torch.equal(again[0], torch.from_numpy(patches))
+    assert not torch.equal(builder.regression(512, 128, builder.generator("regression", 1))[0], again[0])
+    p, q = builder.contrastive(256, builder.generator("contrastive", 0))
+    p_cpu, _ = contrastive_batch(shapes, 256, np.random.default_rng(0))
+    assert p.shape == q.shape == p_cpu.shape
+    assert torch.allclose(p.norm(dim=2).mean(), torch.tensor(float(np.linalg.norm(p_cpu, axis=2).mean())), rtol=0.05)
+
+
+def test_a_run_with_device_batches_trains(tmp_path):
+    """Both stages from the device builder (here the CPU: batch_builder="device"); an unknown
+    builder is refused."""
+    from cljn_addon.core import InputError
+
+    run = dict(TINY_RUN, batch_builder="device", contrastive_epochs=1, regression_epochs=2)
+    weights = train_model(SHAPES, tmp_path / "run", cache_dir=None, **run)
+    log = read_log(tmp_path / "run")
+    assert {r["stage"] for r in log} == {"contrastive", "regression"}
+    assert all(np.isfinite(r["loss"]) for r in log)
+    regression = [r["loss"] for r in log if r["stage"] == "regression"]
+    assert regression[-1] < regression[0]
+    assert load_model(weights).config.preset == "tiny"
+    with pytest.raises(InputError, match="batch builder"):
+        train_model(SHAPES, tmp_path / "bad", cache_dir=None, **dict(TINY_RUN, batch_builder="gpu"))

@@ -7,7 +7,10 @@ what shading sees), and against the face each input point came from. "Flipped" c
 output normals that face away from every clean face within one noise sigma of their point (no
 clean sample there within 60 degrees of them): a wrong-sign figure that leaves out the points
 near an acute edge or notch that carry the other face's outward normal (a face mix-up, which
-the MSAE scores, not a flip).
+the MSAE scores, not a flip). "Either face at an edge" reads a point beyond a convex edge (its
+nearest clean point is the edge, where the faces meeting there are equally near and
+`MeshDistance.nearest` returns one of them) as right when its normal agrees with either face's
+(`MeshDistance.sign_at_any_nearest_face`); elsewhere it is the sign output.
 
   python tools/sign_study.py --shapes star_prism gear --levels 0.6 1.1 2.0
 """
@@ -61,8 +64,9 @@ def main(argv=None):
             res = core.denoise(noisy, model, iterations="auto", orientation="outward", seed=0)
             _, facing = surface.nearest(res.points)
             flipped = flipped_share(res.points, res.normals, facing, clean_tree, clean_normals, percent / 100)
-            print(f"{name} {percent:.1f}%: sign output {sign_agreement(res.normals, facing):.1%}, flipped "
-                  f"{flipped:.2%}, against the faces of origin {sign_agreement(res.normals, origin):.1%} "
+            either = surface.sign_at_any_nearest_face(res.points, res.normals).mean()
+            print(f"{name} {percent:.1f}%: sign output {sign_agreement(res.normals, facing):.2%} (either face at an "
+                  f"edge {either:.2%}), flipped {flipped:.2%}, against the faces of origin {sign_agreement(res.normals, origin):.1%} "
                   f"({res.iterations} passes, {time.time() - t0:.0f} s)", flush=True)
 
 

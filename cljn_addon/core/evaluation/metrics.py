@@ -97,22 +97,41 @@ class MeshDistance:
     def distance(self, points, chunk=20000):
         return self.nearest(points, chunk)[0]
 
+    def _candidate_distances(self, p):
+        """Distances (M, k) from points p to their candidate faces, and those faces' ids."""
+        _, idx = self.tree.query(p, k=self.k, workers=-1)
+        cand = self.sample_face[idx]                          # (M, k) face ids
+        tri = self.f[cand]                                    # (M, k, 3)
+        a, b, c = self.v[tri[..., 0]], self.v[tri[..., 1]], self.v[tri[..., 2]]
+        q = closest_point_on_triangles(np.broadcast_to(p[:, None, :], a.shape), a, b, c)
+        return np.linalg.norm(q - p[:, None, :], axis=2), cand
+
     def nearest(self, points, chunk=20000):
-        """(distance to the mesh, normal of the nearest face) for every point."""
+        """(distance to the mesh, normal of the nearest face) for every point. Where the
+        nearest point is an edge or a vertex (a point beyond a convex edge), the faces that
+        meet there are equally near and one of them is returned (`sign_at_any_nearest_face`)."""
         dist = np.empty(len(points))
         face = np.empty(len(points), np.int64)
         for s in range(0, len(points), chunk):
-            p = points[s:s + chunk]
-            _, idx = self.tree.query(p, k=self.k, workers=-1)
-            cand = self.sample_face[idx]                          # (M, k) face ids
-            tri = self.f[cand]                                    # (M, k, 3)
-            a, b, c = self.v[tri[..., 0]], self.v[tri[..., 1]], self.v[tri[..., 2]]
-            q = closest_point_on_triangles(np.broadcast_to(p[:, None, :], a.shape), a, b, c)
-            d = np.linalg.norm(q - p[:, None, :], axis=2)
+            d, cand = self._candidate_distances(points[s:s + chunk])
             best = d.argmin(axis=1)
-            dist[s:s + chunk] = d[np.arange(len(p)), best]
-            face[s:s + chunk] = cand[np.arange(len(p)), best]
+            rows = np.arange(len(d))
+            dist[s:s + chunk] = d[rows, best]
+            face[s:s + chunk] = cand[rows, best]
         return dist, self.face_normals[face]
+
+    def sign_at_any_nearest_face(self, points, normals, tol=1e-9, chunk=20000):
+        """Per point, whether its normal faces the same way (positive dot) as at least one of
+        the faces nearest it. Off an edge that is the one nearest face; beyond a convex edge
+        (or vertex) every face meeting there is nearest, and the surface's normal there is any
+        direction between theirs, so a normal agreeing with either is a right sign."""
+        agree = np.empty(len(points), bool)
+        for s in range(0, len(points), chunk):
+            d, cand = self._candidate_distances(points[s:s + chunk])
+            tied = d <= d.min(axis=1, keepdims=True) + tol
+            dots = np.einsum("mkc,mc->mk", self.face_normals[cand], normals[s:s + chunk])
+            agree[s:s + chunk] = (tied & (dots > 0)).any(axis=1)
+        return agree
 
 
 def point2surface(points, vertices, faces):

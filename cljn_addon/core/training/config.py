@@ -40,6 +40,9 @@ class TrainConfig:
                                             # clock and the running stage ends when it is spent
     data_workers: int = 0                   # > 0: processes build the regressor's batches (a GPU
                                             # outruns one core's patch gathering)
+    batch_builder: str = "auto"             # "numpy" (k-d trees on the CPU), "device" (torch on the
+                                            # training device: device_batches.py) or "auto" (device
+                                            # when training on a CUDA GPU)
     bf16: bool = True
     device: str = "auto"
 

@@ -201,6 +201,10 @@ def _keep_own_side(local, idx, normals, own_normal, rng):
 def _gather_with_index(clean_source: PatchSource, centres, radius, m, rng):
     """m clean points from each ball (uniform, padded by repetition) and their indices.
 
+    Drawn from the ball's 4m nearest clean points: where the ball holds more (both faces of a
+    thin part in a dense cloud) that is a smaller disc about the centre, not the whole ball
+    (`device_batches` draws from the whole ball).
+
     A ball with no clean point (the noisy centre drifted further than r) falls back to the
     m nearest clean points, so the loss still has a surface to aim at.
     """

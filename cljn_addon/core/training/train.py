@@ -29,6 +29,7 @@ from .data import contrastive_batch, load_clean_cloud, make_training_shape, regr
 from .losses import NORMAL_LOSSES, fixed_target_loss, joint_loss, nt_xent
 
 STAGES = ("contrastive", "regression", "done")
+BATCH_BUILDERS = ("auto", "numpy", "device")
 
 
 def _quiet(_message):
@@ -122,6 +123,32 @@ def _worker_batches(run, shapes):
     return iter(loader)
 
 
+def _on(device, array):
+    """A batch array (numpy from the CPU builders, a tensor from the device's) on `device`."""
+    return array.to(device) if isinstance(array, torch.Tensor) else torch.from_numpy(array).to(device)
+
+
+def _device_batches(run, shapes):
+    """The stage's remaining batches built on the training device (`device_batches.py`), each
+    from its step's own seeded generator, like the worker processes' batches."""
+    from .device_batches import DeviceBatches
+
+    builder = DeviceBatches(shapes, run.device, run.cfg.seed)
+    cfg, stage = run.cfg, run.stage
+    for step in range(run.step, run.stage_total):
+        g = builder.generator(stage, step)
+        if stage == "contrastive":
+            yield builder.contrastive(cfg.contrastive_batch, g)
+        else:
+            yield builder.regression(cfg.regression_batch, cfg.gt_points, g, own_side=cfg.gt_side == "own")
+
+
+def uses_device_batches(cfg, device) -> bool:
+    """Whether batches are built on the training device: asked for, or "auto" on a CUDA GPU
+    (not MPS, whose torch lacks some of the ops: eigh for the frames)."""
+    return cfg.batch_builder == "device" or (cfg.batch_builder == "auto" and torch.device(device).type == "cuda")
+
+
 def make_config(config: TrainConfig | None = None, quick=False, **overrides) -> TrainConfig:
     """config (or the defaults), then QUICK when quick, then overrides; checked."""
     base = dataclasses.asdict(config) if config is not None else {}
@@ -135,6 +162,8 @@ def make_config(config: TrainConfig | None = None, quick=False, **overrides) -> 
         raise InputError(f"unknown normal loss {cfg.normal_loss!r} ({' or '.join(NORMAL_LOSSES)})")
     if cfg.gt_side not in ("all", "own"):
         raise InputError(f"unknown ground-truth side {cfg.gt_side!r} (all or own)")
+    if cfg.batch_builder not in BATCH_BUILDERS:
+        raise InputError(f"unknown batch builder {cfg.batch_builder!r} ({' or '.join(BATCH_BUILDERS)})")
     if cfg.noise_levels not in NOISE_LEVEL_SETS:
         raise InputError(f"unknown noise levels {cfg.noise_levels!r} ({' or '.join(NOISE_LEVEL_SETS)})")
     return cfg
@@ -225,10 +254,11 @@ class _Run:
             self.stage = "done"
         self.save_checkpoint()
 
-    def contrastive_loss(self, shapes):
-        p, q = contrastive_batch(shapes, self.cfg.contrastive_batch, self.rng)
+    def contrastive_loss(self, shapes, batch=None):
+        """NT-Xent on `batch` (positive pairs P, Q: numpy or device tensors) or on pairs drawn here."""
+        p, q = batch if batch is not None else contrastive_batch(shapes, self.cfg.contrastive_batch, self.rng)
         with autocast(self.device, self.cfg.bf16):
-            z = self.model.project(torch.from_numpy(np.concatenate([p, q])).to(self.device))
+            z = self.model.project(torch.cat([_on(self.device, p), _on(self.device, q)]))
         return nt_xent(z[: len(p)], z[len(p):], self.loss_cfg.temperature), {}
 
     def regression_loss(self, shapes, batch=None):
@@ -239,26 +269,25 @@ class _Run:
         if batch is None:
             batch = regression_batch(shapes, cfg.regression_batch, cfg.gt_points, self.rng,
                                      own_side=cfg.gt_side == "own")
-        patches, gt, gt_n, tgt, tgt_n = batch
+        patches, gt, gt_n, tgt, tgt_n = (_on(dev, a) for a in batch)
         with autocast(dev, cfg.bf16):
             with torch.enable_grad() if cfg.finetune_encoder else torch.no_grad():
-                feats = model.encoder(torch.from_numpy(patches).to(dev))
+                feats = model.encoder(patches)
             out6 = model.regressor(feats).float()
         disp = out6[:, :3]
         normal = torch.nn.functional.normalize(out6[:, 3:], dim=1, eps=1e-8)
         if cfg.loss != "joint":
-            return fixed_target_loss(disp, normal, torch.from_numpy(tgt).to(dev),
-                                     torch.from_numpy(tgt_n).to(dev), self.loss_cfg)
+            return fixed_target_loss(disp, normal, tgt, tgt_n, self.loss_cfg)
         # "index": the normal of the clean point this noisy centre was made from.
-        index_normal = torch.from_numpy(tgt_n).to(dev) if cfg.normal_target == "index" else None
-        return joint_loss(disp, normal, torch.from_numpy(gt).to(dev), torch.from_numpy(gt_n).to(dev),
-                          self.loss_cfg, normal_target=index_normal, normal_loss_kind=cfg.normal_loss)
+        index_normal = tgt_n if cfg.normal_target == "index" else None
+        return joint_loss(disp, normal, gt, gt_n, self.loss_cfg, normal_target=index_normal,
+                          normal_loss_kind=cfg.normal_loss)
 
     def train_step(self, shapes, batch=None):
         """One optimiser step of the current stage; returns (loss, loss parts)."""
         self.model.train()
         if self.stage == "contrastive":
-            loss, parts = self.contrastive_loss(shapes)
+            loss, parts = self.contrastive_loss(shapes, batch)
         else:
             loss, parts = self.regression_loss(shapes, batch)
         self.opt.zero_grad(set_to_none=True)
@@ -301,7 +330,9 @@ def _train_loop(run, shapes, out, progress, cancel):
             if cancel is not None and cancel.is_set():
                 run.save_checkpoint()
                 raise Cancelled("training cancelled; resume continues from the last checkpoint")
-            if batches is None and run.stage == "regression" and run.cfg.data_workers > 0:
+            if batches is None and uses_device_batches(run.cfg, run.device):
+                batches = _device_batches(run, shapes)
+            elif batches is None and run.stage == "regression" and run.cfg.data_workers > 0:
                 batches = _worker_batches(run, shapes)
             loss, parts = run.train_step(shapes, next(batches) if batches is not None else None)
             if run.step % 10 == 0 or run.step == run.stage_total:
