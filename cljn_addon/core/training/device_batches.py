@@ -42,7 +42,7 @@ def _uniform_from_ball(cloud, centres, radius, count, generator, nearest_fallbac
     # Padding only where the ball holds fewer than `count`: repeat one of its first columns.
     pad = (torch.rand(picked.shape, generator=generator, device=d2.device)
            * inside_count.clamp(1, count)).long()
-    return torch.where(fill, torch.gather(picked, 1, pad), picked), inside_count[:, 0]
+    return torch.where(fill, torch.gather(picked, 1, pad), picked)
 
 
 def pca_frames(local):
@@ -103,7 +103,7 @@ class DeviceBatches:
         for rows in torch.arange(len(shape), device=self.device).split(ROWS_PER_CHUNK):
             cloud = self.clouds[shape[rows], variant[rows]]
             r = self.radius[shape[rows], variant[rows]]
-            idx, _ = _uniform_from_ball(cloud, centres[rows], r, self.n, g, nearest_fallback=False)
+            idx = _uniform_from_ball(cloud, centres[rows], r, self.n, g, nearest_fallback=False)
             picked = torch.gather(cloud, 1, idx[..., None].expand(-1, -1, 3))
             out[rows] = (picked - centres[rows, None, :]) / r[:, None, None]
         return out
@@ -119,7 +119,7 @@ class DeviceBatches:
         for rows in torch.arange(batch, device=self.device).split(ROWS_PER_CHUNK):
             clean = self.clean[shape[rows]]
             normals = self.normals[shape[rows]]
-            idx, _ = _uniform_from_ball(clean, centres[rows], radius[rows], gt_points, g, nearest_fallback=True)
+            idx = _uniform_from_ball(clean, centres[rows], radius[rows], gt_points, g, nearest_fallback=True)
             if own_side:
                 idx = self._keep_own_side(idx, normals, self.normals[shape[rows], centre[rows]], g)
             gt[rows] = (torch.gather(clean, 1, idx[..., None].expand(-1, -1, 3)) - centres[rows, None, :]) \

@@ -128,12 +128,10 @@ def _on(device, array):
     return array.to(device) if isinstance(array, torch.Tensor) else torch.from_numpy(array).to(device)
 
 
-def _device_batches(run, shapes):
-    """The stage's remaining batches built on the training device (`device_batches.py`), each
-    from its step's own seeded generator, like the worker processes' batches."""
-    from .device_batches import DeviceBatches
-
-    builder = DeviceBatches(shapes, run.device, run.cfg.seed)
+def _device_batches(run, builder):
+    """The stage's remaining batches from `builder` (a `device_batches.DeviceBatches`, the
+    clouds on the training device), each from its step's own seeded generator, like the worker
+    processes' batches."""
     cfg, stage = run.cfg, run.stage
     for step in range(run.step, run.stage_total):
         g = builder.generator(stage, step)
@@ -320,7 +318,7 @@ def _load_checkpoint(ckpt_path, cfg, resume, log):
 def _train_loop(run, shapes, out, progress, cancel):
     """Steps until both stages are done; checkpoints on schedule, on stage ends and on cancel."""
     last_ckpt = time.time()
-    batches = None
+    batches = builder = None
     with open(out / "log.jsonl", "a") as log_file:
         while run.stage != "done":
             if run.step >= run.stage_total or run.out_of_time():
@@ -331,7 +329,11 @@ def _train_loop(run, shapes, out, progress, cancel):
                 run.save_checkpoint()
                 raise Cancelled("training cancelled; resume continues from the last checkpoint")
             if batches is None and uses_device_batches(run.cfg, run.device):
-                batches = _device_batches(run, shapes)
+                if builder is None:          # the clouds go to the device once, for both stages
+                    from .device_batches import DeviceBatches
+
+                    builder = DeviceBatches(shapes, run.device, run.cfg.seed)
+                batches = _device_batches(run, builder)
             elif batches is None and run.stage == "regression" and run.cfg.data_workers > 0:
                 batches = _worker_batches(run, shapes)
             loss, parts = run.train_step(shapes, next(batches) if batches is not None else None)
