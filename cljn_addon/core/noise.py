@@ -106,17 +106,43 @@ def estimate_noise(points, radius, sample=NOISE_SAMPLE, seed=0) -> NoiseEstimate
 def _estimate(pts, radius, sample, rng):
     """(sigma, share of two-sheet balls, quiet sigma)."""
     centres = pts[rng.choice(len(pts), size=min(sample, len(pts)), replace=False)]
-    # A sparse cloud gets wider balls: a robust quadric fit needs ~100 points to be unbiased.
-    k = min(FIT_BALL_POINTS, len(pts) - 1)
-    reach, _ = cKDTree(pts).query(centres[:500], k=[k + 1], workers=-1)
-    radius = max(float(radius), float(np.median(reach)))
+    # A sparse cloud gets wider balls. Whether its balls hold two sheets is read where a ball
+    # holds `FIT_BALL_POINTS`; its noise where a ball holds as many distinct points as the fit
+    # draws (`NOISE_PATCH_POINTS`): a ball padded with repeats of its points reads low (a 10K
+    # sphere at 1%: 0.86x sigma, the quietest balls 0.63x; with distinct points 0.98x, 0.95x),
+    # while a ball that wide no longer sees a thin wall's two sheets (a cup at 5K points).
+    counts = [min(FIT_BALL_POINTS, len(pts) - 1), min(NOISE_PATCH_POINTS, len(pts) - 1)]
+    reach, _ = cKDTree(pts).query(centres[:500], k=[c + 1 for c in counts], workers=-1)
+    share_radius, sigma_radius = (max(float(radius), float(r)) for r in np.median(reach, axis=0))
+    fits = _ball_fits(pts, share_radius, centres, rng)
+    if fits is None:
+        return 0.0, 0.0, 0.0
+    share = float(fits[1].mean())
+    if sigma_radius > share_radius:
+        wide = _ball_fits(pts, sigma_radius, centres, rng)
+        fits = fits if wide is None else wide
+    scale, two, two_sigma, fit_radius = fits
+    # A ball across a part ~2-3 sigma thick: the robust fit cannot tell the two sides apart
+    # and reads the part's thickness as noise; the two-sheet mixture can. Only where such
+    # balls are common (a thin-walled object): at high noise a few balls of any shape split
+    # their noise in two and would pull the estimate down.
+    if share >= THIN_WALLED_SHARE:
+        scale[two] = np.minimum(scale[two], two_sigma[two])
+    quiet = QUIET_SCALE * float(np.quantile(scale, QUIET_QUANTILE))
+    return float(np.median(scale) * fit_radius), share, quiet * fit_radius
+
+
+def _ball_fits(pts, radius, centres, rng):
+    """Per ball of `radius` round `centres`: (robust quadric sigma, whether two parallel sheets
+    fit it better, their shared sigma), in radius units, and the radius; None if no ball holds
+    enough points."""
     source = PatchSource(pts, radius, NOISE_PATCH_POINTS, rng)
     local, _, counts = make_patches(source, centres, rng)
     dense = counts >= MIN_FIT_POINTS
     local = local[dense].astype(np.float64)
     distinct = np.minimum(counts[dense], NOISE_PATCH_POINTS)     # the rest is padding
     if len(local) == 0:
-        return 0.0, 0.0, 0.0
+        return None
     z = local[..., 2]
     design = quadric_design(local)
     # Start from the half of the ball nearest the centre's own height, so that where a thin
@@ -133,17 +159,9 @@ def _estimate(pts, radius, sample, rng):
     # Six fitted coefficients take six degrees of freedom from the distinct kept points.
     used = distinct * keep.mean(axis=1)
     scale = scale[:, 0] * np.sqrt(used / np.maximum(used - 6.0, 1.0))
-    # A ball across a part ~2-3 sigma thick: the robust fit above cannot tell the two sides
-    # apart and reads the part's thickness as noise; the two-sheet mixture can. Only where
-    # such balls are common (a thin-walled object): at high noise a few balls of any shape
-    # split their noise in two and would pull the estimate down.
     fit = fit_two_sheets(local)
     two = fit["two"] & (fit["kurtosis"] < TWO_SHEET_KURTOSIS)
-    share = float(two.mean())
-    if share >= THIN_WALLED_SHARE:
-        scale[two] = np.minimum(scale[two], fit["sigma"][two])
-    quiet = QUIET_SCALE * float(np.quantile(scale, QUIET_QUANTILE))
-    return float(np.median(scale) * radius), share, quiet * radius
+    return scale, two, fit["sigma"], radius
 
 
 def surface_noise_sigma(points, radius, pilot_sigma, sample=NOISE_SAMPLE, seed=0) -> float:

@@ -357,6 +357,31 @@ def star_prism(points=6, outer=0.5, inner=0.15, height=0.15):
 
 SHAPES.update({"gear": gear, "star_prism": star_prism})
 
+
+def _quad(corner, u, v):
+    """One rectangle (two triangles) from a corner and its two edge vectors; one-sided."""
+    corner, u, v = (np.asarray(a, np.float64) for a in (corner, u, v))
+    return np.array([corner, corner + u, corner + u + v, corner + v]), np.array([[0, 1, 2], [0, 2, 3]])
+
+
+def street_scene(length=8.0, depth=6.0, wall_gap=0.6):
+    """A mobile-LiDAR street in metres (not normalised: a scene's size is its own): open ground,
+    a parked car (a 4.5 x 1.8 x 1.5 m box, no underside) with a building's wall
+    `wall_gap` behind it, and a pole 0.1 m in radius. The case of issue #12's street scan, where
+    a patch of 5% of the diagonal is wider than the gap between the car and the wall. Faces in
+    order: the ground (0-1), the wall (2-3, at y = 1.3 + wall_gap), the car, the pole."""
+    half = length / 2
+    car_v, car_f = box((4.5, 1.8, 1.5))
+    car_v = car_v + [0.0, 0.4, 0.75]                     # its back at y = 1.3
+    underside = np.all(np.isclose(car_v[car_f][:, :, 2], 0.0), axis=1)
+    wall_y = 1.3 + wall_gap
+    pole_v, pole_f = cylinder(0.1, 4.0, 32)
+    return concat_meshes(
+        _quad([-half, wall_y - depth, 0.0], [length, 0, 0], [0, depth, 0]),      # ground
+        _quad([-half, wall_y, 0.0], [length, 0, 0], [0, 0, 4.0]),                  # wall, facing the street
+        (car_v, car_f[~underside]),
+        (pole_v + [3.0, -2.5, 2.0], pole_f))
+
 # The eval's thin-part block (fixed instances; the training family below draws other sizes).
 THIN_SHAPES = {
     "thin_plate": thin_plate,
