@@ -91,12 +91,18 @@ def test_the_risk_check_gate_lets_three_passes_through_in_the_denoise_only(tiny)
     `RISK_CHECK_MAX_PASSES` (3) passes when moving points, `NORMALS_RISK_CHECK_MAX_PASSES` (2)
     in normals-only mode: column_head at 1.1% (50K) gains from it in the denoise (Chamfer 8.80
     -> 7.43) and loses slightly in normals only (origin MSAE 0.5100 -> 0.5127)."""
-    from cljn_addon.core.infer import NORMALS_RISK_CHECK_MAX_PASSES, RISK_CHECK_MAX_PASSES, iterations_for_noise
+    from cljn_addon.core.infer import (
+        NORMALS_RISK_CHECK_MAX_PASSES,
+        RISK_CHECK_MAX_PASSES,
+        iterations_for_noise,
+        padded_patches,
+    )
     from cljn_addon.core.noise import estimate_noise
     from cljn_addon.core.patches import bbox_diagonal
 
-    noisy, _, _ = sample_shape("sphere", 3000, noise=0.018, seed=4)
+    noisy, _, _ = sample_shape("sphere", 20000, noise=0.012, seed=4)
     radius = 0.05 * bbox_diagonal(noisy)
+    assert not padded_patches(noisy, radius, tiny.config.points_per_patch)      # dense: the gate decides
     assert iterations_for_noise(estimate_noise(noisy, radius).quiet_sigma, radius) == 3
     assert NORMALS_RISK_CHECK_MAX_PASSES < 3 <= RISK_CHECK_MAX_PASSES
     denoised, normals_only = [], []
@@ -104,6 +110,26 @@ def test_the_risk_check_gate_lets_three_passes_through_in_the_denoise_only(tiny)
     estimate_normals(noisy, tiny, progress=lambda f, m: normals_only.append(m))
     assert any("plane filters" in m for m in denoised)
     assert not any("plane filters" in m for m in normals_only)
+
+
+def test_a_sparse_cloud_is_checked_against_plane_filters_at_any_noise(tiny):
+    """Where a patch-radius ball holds fewer points than a patch (3K points), the denoise checks
+    its passes even where the noise plans more than `RISK_CHECK_MAX_PASSES`; a dense cloud
+    planning as many is not checked."""
+    from cljn_addon.core.infer import RISK_CHECK_MAX_PASSES, iterations_for_noise, padded_patches
+    from cljn_addon.core.noise import estimate_noise
+    from cljn_addon.core.patches import bbox_diagonal
+
+    for count, checked in ((3000, True), (20000, False)):
+        noisy, _, _ = sample_shape("sphere", count, noise=0.018, seed=4)
+        radius = 0.05 * bbox_diagonal(noisy)
+        assert padded_patches(noisy, radius, tiny.config.points_per_patch) == checked
+        assert iterations_for_noise(estimate_noise(noisy, radius).quiet_sigma, radius) > RISK_CHECK_MAX_PASSES
+        messages = []
+        res = denoise(noisy, tiny, iterations="auto", progress=lambda f, m: messages.append(m))
+        assert any("plane filters" in m for m in messages) == checked
+        if not checked:
+            assert res.plane_share == 0
 
 
 def test_cancel_during_the_wall_split_stops_it(tiny):
@@ -174,7 +200,8 @@ def test_all_points_isolated_is_refused(tiny):
 
 def test_auto_iterations_report_how_many_ran(tiny):
     noisy, _, _ = sample_shape("sphere", 3000, noise=0.01, seed=1)
-    res = denoise(noisy, tiny, iterations="auto", device="cpu")
+    # Without the risk check that may follow the passes (a cloud this sparse always gets it).
+    res = denoise(noisy, tiny, iterations="auto", device="cpu", risk_check=False)
     assert 1 <= res.iterations <= 4
     again = denoise(noisy, tiny, iterations=res.iterations, device="cpu")
     # The same passes as a fixed run with as many iterations.
