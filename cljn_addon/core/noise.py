@@ -117,11 +117,13 @@ def _estimate(pts, radius, sample, rng):
     fits = _ball_fits(pts, share_radius, centres, rng)
     if fits is None:
         return 0.0, 0.0, 0.0
-    share = float(fits[1].mean())
+    scale, two, two_sigma = fits
+    share = float(two.mean())
+    fit_radius = share_radius
     if sigma_radius > share_radius:
         wide = _ball_fits(pts, sigma_radius, centres, rng)
-        fits = fits if wide is None else wide
-    scale, two, two_sigma, fit_radius = fits
+        if wide is not None:
+            (scale, two, two_sigma), fit_radius = wide, sigma_radius
     # A ball across a part ~2-3 sigma thick: the robust fit cannot tell the two sides apart
     # and reads the part's thickness as noise; the two-sheet mixture can. Only where such
     # balls are common (a thin-walled object): at high noise a few balls of any shape split
@@ -134,8 +136,7 @@ def _estimate(pts, radius, sample, rng):
 
 def _ball_fits(pts, radius, centres, rng):
     """Per ball of `radius` round `centres`: (robust quadric sigma, whether two parallel sheets
-    fit it better, their shared sigma), in radius units, and the radius; None if no ball holds
-    enough points."""
+    fit it better, their shared sigma), in radius units; None if no ball holds enough points."""
     source = PatchSource(pts, radius, NOISE_PATCH_POINTS, rng)
     local, _, counts = make_patches(source, centres, rng)
     dense = counts >= MIN_FIT_POINTS
@@ -161,7 +162,7 @@ def _ball_fits(pts, radius, centres, rng):
     scale = scale[:, 0] * np.sqrt(used / np.maximum(used - 6.0, 1.0))
     fit = fit_two_sheets(local)
     two = fit["two"] & (fit["kurtosis"] < TWO_SHEET_KURTOSIS)
-    return scale, two, fit["sigma"], radius
+    return scale, two, fit["sigma"]
 
 
 def surface_noise_sigma(points, radius, pilot_sigma, sample=NOISE_SAMPLE, seed=0) -> float:
