@@ -4,13 +4,14 @@ import pytest
 import torch
 
 from cljn_addon.core import InputError, build_model, denoise, estimate_normals
-from cljn_addon.core.evaluation.shapes import sample_shape
+from cljn_addon.core.evaluation.shapes import sample_shape, sample_shape_varying_noise
 from cljn_addon.core.noise import (
     DISPLACEMENT_BOUND_SIGMAS,
     THIN_WALLED_SHARE,
     clamp_displacement,
     estimate_noise,
     estimate_noise_sigma,
+    local_noise,
     surface_noise_sigma,
 )
 from cljn_addon.core.patches import bbox_diagonal
@@ -57,6 +58,31 @@ def test_clamp_keeps_direction_and_caps_length():
     assert np.allclose(out[0], moved[0])
     assert np.allclose(out[1], [0, 0.6, 0.8])
     assert np.allclose(out[2], [0, 0, -0.5])
+
+
+def test_clamp_takes_a_bound_per_point():
+    original = np.zeros((2, 3))
+    moved = np.array([[0, 3.0, 4.0], [0, 3.0, 4.0]])
+    out = clamp_displacement(moved, original, np.array([1.0, 10.0]))
+    assert np.allclose(out, [[0, 0.6, 0.8], [0, 3.0, 4.0]])
+
+
+def test_local_noise_follows_noise_that_grows_across_the_cloud():
+    """A sphere whose noise grows from 0.2% to 2% along x: each end's local reading is within
+    20% of its own noise (the cloud's one estimate is ~1%), and the cloud reads as varying."""
+    noisy, _, sigma = sample_shape_varying_noise("sphere", 30000, 0.002, 0.02, seed=3)
+    read = local_noise(noisy, estimate_noise(noisy, 0.05 * bbox_diagonal(noisy)))
+    assert read.varies()
+    x = noisy[:, 0]
+    for end in (x < np.quantile(x, 0.1), x > np.quantile(x, 0.9)):
+        assert np.median(read.sigma[end]) == pytest.approx(np.median(sigma[end]), rel=0.2)
+
+
+@pytest.mark.parametrize("name, noise", [("sphere", 0.006), ("star", 0.006), ("gear", 0.011), ("stepped_block", 0.02)])
+def test_a_cloud_of_one_noise_does_not_read_as_varying(name, noise):
+    noisy, _, _ = sample_shape(name, 30000, noise=noise, seed=2)
+    read = local_noise(noisy, estimate_noise(noisy, 0.05 * bbox_diagonal(noisy)))
+    assert not read.varies()
 
 
 def test_denoise_never_moves_a_point_beyond_the_bound():
@@ -198,7 +224,8 @@ def test_normals_only_reads_the_noise_in_the_quietest_balls():
     torch.manual_seed(0)
     noisy, _, _ = sample_shape("star_prism", 20000, noise=0.006, seed=3)
     model = build_model("tiny").eval()
-    whole, _, quiet = estimate_noise(noisy - noisy.mean(axis=0), 0.05 * bbox_diagonal(noisy))
+    est = estimate_noise(noisy - noisy.mean(axis=0), 0.05 * bbox_diagonal(noisy))
+    whole, quiet = est.sigma, est.quiet_sigma
     res = estimate_normals(noisy, model, risk_check=False)
     assert whole > 1.3 * 0.006
     assert res.noise_sigma == pytest.approx(quiet, rel=0.05)

@@ -34,3 +34,16 @@ def test_inflation_undoes_a_uniform_shrink():
     assert after < 0.05 * before
     shift = clean + [0.02, 0.0, 0.0]                           # a rigid shift is undone exactly
     assert np.allclose(inflation(shift, clean, 100), clean, atol=1e-12)
+
+
+def test_the_sheet_reach_may_differ_per_point():
+    """Refinement's max_offset per point (noise that varies across a cloud): a constant array
+    gives the scalar's result, and a point given no reach keeps only itself."""
+    noisy, _, normals = sample_shape("sphere", 3000, noise=0.01, seed=4)
+    shifted = noisy + 0.002 * normals
+    for step in (lambda m: inflation(shifted, noisy, 30, normals, max_offset=m),
+                 lambda m: lrma_update(noisy, normals, 20, max_offset=m)):
+        assert np.array_equal(step(0.03), step(np.full(len(noisy), 0.03)))
+        reach = np.full(len(noisy), 0.03)
+        reach[0] = 0.0
+        assert not np.allclose(step(reach)[0], step(0.03)[0])

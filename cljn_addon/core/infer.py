@@ -15,7 +15,7 @@ from scipy.spatial import cKDTree
 
 from .config import INFLATION_NEIGHBOURS, LRMA_NEIGHBOURS, MIN_BALL_POINTS, ORIENTATIONS
 from .errors import Cancelled, InputError, positive_number
-from .noise import DISPLACEMENT_BOUND_SIGMAS, THIN_WALLED_SHARE, clamp_displacement, estimate_noise, surface_noise_sigma
+from .noise import DISPLACEMENT_BOUND_SIGMAS, THIN_WALLED_SHARE, clamp_displacement, estimate_noise, local_noise, surface_noise_sigma
 from .orient import orient_normals
 from .origin import median_count_within, origin_normals
 from .patches import PatchSource, bbox_diagonal, framed_patches, from_frame
@@ -189,6 +189,11 @@ def iterations_for_noise(sigma, radius):
     return int(np.clip(np.round(sigma / radius / AUTO_SIGMA_PER_ITERATION), 1, MAX_AUTO_ITERATIONS))
 
 
+def passes_for_local_noise(sigmas, radius):
+    """(N,) `iterations_for_noise` of each point's own noise (`noise.local_noise`)."""
+    return np.clip(np.round(np.asarray(sigmas) / radius / AUTO_SIGMA_PER_ITERATION), 1, MAX_AUTO_ITERATIONS).astype(int)
+
+
 def auto_iteration_count(sigma, radius, thin_walled):
     """Passes iterations='auto' plans before its stop: one on a thin-walled object (see `_run`),
     else `iterations_for_noise`."""
@@ -259,7 +264,7 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
          points_per_patch=None, orientation="outward", viewpoint=None,
          device="auto", progress=None, cancel=None, seed=0, refine=True, max_displacement=None,
          normal_motion_only=True, own_sheet="auto", split_walls=True, on_iteration=None, noise_sigma=None,
-         rod_normals=True, risk_check=True, rim_normals=True):
+         rod_normals=True, risk_check=True, rim_normals=True, varying_noise=None):
     """The engine behind `denoise` (move_points=True) and `estimate_normals` (False).
 
     points: (N, 3) array, any units. patch_radius: absolute radius; otherwise
@@ -320,6 +325,14 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
     output's own planes (`risk.fitted_normals`). It costs one more run of the passes. Normals
     only checks the surface its one pass filtered in the same way, at the same noise, before
     the posterior. plane_share in the result: the share of points a plane filter placed.
+    Noise that changes across the cloud (ours; a LiDAR's grows with range): with
+    iterations='auto', no max_displacement or noise_sigma given, and not thin-walled, where the
+    noise read near each point (`noise.local_noise`) varies by `noise.VARYING_NOISE_RATIO`
+    across the cloud, each point gets the bound, the passes (the cloud runs the most any point
+    needs; a point stops moving after its own) and the refinement reach of its own noise, the
+    stop compares moves with it, and the risk check reads it. varying_noise: that reading
+    (`noise.LocalNoise`, per point of `points`), given to the risk check's second run;
+    displacement_bound in the result is then the largest point's.
     """
     t0 = time.time()
     given = validate_points(points)
@@ -370,16 +383,23 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
         raise InputError(f"max displacement must be a positive number, got {max_displacement!r}")
     thin_walled = two_sheets = False
     quiet_sigma = float("nan")
+    if varying_noise is not None:          # given per point of `points`: keep the inliers'
+        varying_noise = type(varying_noise)(*(np.asarray(field)[inliers] for field in varying_noise))
     # Normals only needs sigma (the posterior's reach) and, for its risk check, the quiet sigma
     # and how thin-walled it is; moving, also the bound and the passes.
     if (noise_sigma is None or risk_check) if not move_points else (bound is None or auto_iterations
                                                                    or own_sheet == "auto"):
         report(0.0, "estimating the noise level")
-        sigma, two_sheet_share, quiet_sigma = estimate_noise(current, radius0, seed=seed)
-        two_sheets = two_sheet_share >= THIN_WALLED_SHARE
+        estimate = estimate_noise(current, radius0, seed=seed)
+        sigma, quiet_sigma = estimate.sigma, estimate.quiet_sigma
+        two_sheets = estimate.two_sheet_share >= THIN_WALLED_SHARE
         # Normals only keeps whole-ball patches on thin walls (stool at 0.6%, 50K: MSAE 0.208,
         # 0.220 with own-sheet patches).
         thin_walled = move_points and two_sheets and own_sheet is not False
+        if auto_iterations and max_displacement is None and noise_sigma is None and not thin_walled:
+            read = local_noise(current, estimate)
+            varying_noise = read if read is not None and read.varies() else None
+    local = varying_noise if move_points else None
     if noise_sigma is not None:
         sigma = quiet_sigma = float(noise_sigma)
     elif not move_points and np.isfinite(quiet_sigma) and quiet_sigma > 0:
@@ -393,11 +413,18 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
         own_sheet = thin_walled
     if bound is None:
         bound = DISPLACEMENT_BOUND_SIGMAS * sigma
+    point_bound = bound if local is None else DISPLACEMENT_BOUND_SIGMAS * local.sigma
     if auto_iterations:
         # A thin-walled object gets one pass: own-sheet patches catch ~60% of the patches that
         # straddle a wall 2.5 sigma thick, each pass draws the faces a little together, and
         # passes compound (l_bracket at 1.1%: Chamfer 14.8 after 3 passes, 9.6 after 1).
         iterations = auto_iteration_count(sigma, radius0, thin_walled)
+    point_passes = None
+    if local is not None:
+        # Each point moves in as many passes as its own noise needs; the cloud runs the most.
+        point_passes = passes_for_local_noise(local.sigma, radius0)
+        if auto_iterations:
+            iterations = int(point_passes.max())
     risk_check = (risk_check and (auto_iterations or not move_points) and not (thin_walled if move_points else two_sheets)
                   and np.isfinite(quiet_sigma) and quiet_sigma > 0
                   and (iterations_for_noise(quiet_sigma, radius0)
@@ -407,7 +434,9 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
         span[0] = 0.5
     stop_move = float("inf")
     if auto_iterations and iterations > 1:
-        if noise_sigma is not None:
+        if local is not None:
+            stop_move = STOP_MOVE_SIGMAS * sigma      # moves are read against each point's own noise
+        elif noise_sigma is not None:
             stop_move = STOP_MOVE_SIGMAS * sigma
         else:
             report(0.0, "estimating the noise level along the surface")
@@ -416,7 +445,8 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
     # Inflation and LRMA leave out neighbours further than this from a point's tangent plane
     # (the other side of a thin part); unknown noise (a bound given by the caller): the paper's.
     sheet_sigmas = THIN_REFINE_SHEET_SIGMAS if thin_walled else REFINE_SHEET_SIGMAS
-    sheet_offset = (sheet_sigmas * sigma if (max_displacement is None or auto_iterations or noise_sigma is not None)
+    sheet_offset = (sheet_sigmas * (sigma if local is None else local.sigma)
+                    if (max_displacement is None or auto_iterations or noise_sigma is not None)
                     and np.isfinite(sigma) and sigma > 0 else None)
     normals = None
     rod_fits = RodNormals(original[inliers], radius0, seed=seed + 1, cancel=cancel) if rod_normals else None
@@ -461,12 +491,20 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
             filtered = lrma_update(filtered, normals, LRMA_NEIGHBOURS, max_offset=sheet_offset)
         if cancel is not None and cancel.is_set():
             raise Cancelled("cancelled")
-        moved = clamp_displacement(filtered, original[inliers], bound)
+        moved = clamp_displacement(filtered, original[inliers], point_bound)
+        if point_passes is not None:
+            done = point_passes <= it
+            moved[done] = current[done]
         if not move_points:
             # Normals only: the filtered points stand for the surface the normals come from.
             surface = moved
             break
-        if it > 0 and np.sqrt(np.mean(np.sum((moved - original[inliers]) ** 2, axis=1))) > stop_move:
+        move = np.sum((moved - original[inliers]) ** 2, axis=1)
+        if local is not None:
+            # Each point's move against its own noise (the surface estimate reads a mixture:
+            # a sphere whose noise grows from 0.2% to 2% across it, 0.82x the balls' median).
+            move = move * (sigma / local.sigma) ** 2
+        if it > 0 and np.sqrt(np.mean(move)) > stop_move:
             # Moved further than the noise: keep the previous pass. This pass's normals were
             # taken on exactly those points, so no normals pass is needed.
             iterations, stopped_early = it, True
@@ -492,13 +530,14 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
         # The same passes (same seed, pass count, radius, sigma, bound) on the input nudged
         # along the normals give the network's divergence for the risk estimate. Normals only:
         # its one pass filtered the surface its normals come from; that surface is checked.
-        amplitude, offsets = probe_offsets(normals, quiet_sigma, seed=seed + 2)
+        risk_sigma = quiet_sigma if local is None else local.sigma
+        amplitude, offsets = probe_offsets(normals, risk_sigma, seed=seed + 2)
         probe = _run(original[inliers] + offsets, model, iterations, move_points=True,
                      patch_radius=patch_radius if move_points else radius,
                      patch_radius_fraction=fraction, points_per_patch=points_per_patch, orientation="none",
                      device=device, cancel=cancel, seed=seed, refine=refine, max_displacement=bound,
                      normal_motion_only=normal_motion_only, own_sheet=False, split_walls=False,
-                     noise_sigma=sigma, rod_normals=rod_normals, risk_check=False,
+                     noise_sigma=sigma, rod_normals=rod_normals, risk_check=False, varying_noise=local,
                      progress=None if progress is None else
                      lambda f, m: progress(0.5 + 0.45 * min(f, 1.0), f"checking against plane filters: {m}"))
         if cancel is not None and cancel.is_set():
@@ -506,12 +545,12 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
         report(0.95, "checking against plane filters: choosing by region")
         # The probe ran centred on its own bounding box; its points come back in our frame.
         chosen, choice = choose_by_risk(original[inliers], normals, current if move_points else surface,
-                                        probe.points, amplitude, offsets, quiet_sigma, seed=seed, cancel=cancel)
-        chosen = clamp_displacement(chosen, original[inliers], bound)
+                                        probe.points, amplitude, offsets, risk_sigma, seed=seed, cancel=cancel)
+        chosen = clamp_displacement(chosen, original[inliers], point_bound)
         # There the normal is the output's own plane; a rod's keeps its section's.
         planar = np.flatnonzero((choice > 0) & ~rods)
         if len(planar):
-            normals[planar] = fitted_normals(chosen, planar, normals, quiet_sigma, seed=seed)
+            normals[planar] = fitted_normals(chosen, planar, normals, float(np.median(risk_sigma)), seed=seed)
         if move_points:
             current = chosen
         else:
@@ -526,7 +565,7 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
         report(0.95, "looking for merged thin walls")
         split, side = split_merged_walls(original[inliers], current, normals, seed=seed, cancel=cancel)
         if side.any():
-            current = clamp_displacement(split, original[inliers], bound)
+            current = clamp_displacement(split, original[inliers], point_bound)
     out_points = given.copy()          # unmoved points (outliers, normals only) bit-identical
     if move_points:
         out_points[inliers] = current + centre
@@ -570,7 +609,8 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
             rows = rows[keep]
             seated = seat_on_facing_face(current[rows], all_normals[faced.idx[keep]], faced.median[keep],
                                          faced.variance[keep], sigma)
-            out_points[inliers[rows]] = clamp_displacement(seated, original[inliers[rows]], bound) + centre
+            out_points[inliers[rows]] = clamp_displacement(
+                seated, original[inliers[rows]], point_bound if local is None else point_bound[rows]) + centre
     rim_share = 0.0
     # Outward normals of closed or thin-walled objects only: the test reads a rim's two faces
     # from normals facing apart, and an open scan's border is where the scan ends, not a rim
@@ -586,7 +626,8 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
     report(1.0, "done")
     return DenoiseResult(points=out_points, normals=all_normals.astype(np.float32), outliers=outliers,
                          displacement=displacement, seconds=time.time() - t0, iterations=iterations,
-                         noise_sigma=sigma, displacement_bound=bound if move_points else float("inf"), ran_on=ran_on,
+                         noise_sigma=sigma, ran_on=ran_on,
+                         displacement_bound=float(np.max(point_bound)) if move_points else float("inf"),
                          thin_walled=thin_walled,
                          stopped_early=stopped_early, split_share=float(np.mean(side != 0)) if len(side) else 0.0,
                          rod_share=float(np.mean(rods)) if len(rods) else 0.0, plane_share=plane_share,

@@ -28,7 +28,7 @@ def inflation(filtered: np.ndarray, before: np.ndarray, k: int = 100, normals=No
             out[s:s + CHUNK] = filtered[s:s + CHUNK] - shift[idx].mean(axis=1)
             continue
         offset = np.einsum("mc,mkc->mk", normals[s:s + CHUNK], before[idx] - before[s:s + CHUNK, None, :])
-        near = (np.abs(offset) <= max_offset)[..., None]
+        near = (np.abs(offset) <= _rows(max_offset, s))[..., None]
         count = np.maximum(near.sum(axis=1), 1)
         out[s:s + CHUNK] = filtered[s:s + CHUNK] - (shift[idx] * near).sum(axis=1) / count
     return out
@@ -60,7 +60,14 @@ def lrma_update(points: np.ndarray, normals: np.ndarray, k: int = 20, max_offset
         if max_offset is None:
             out[s:s + CHUNK] = p + (along_j + along_i).sum(axis=1) / (3.0 * k)
         else:
-            near = (np.abs(offset_i) <= max_offset)[..., None]
+            near = (np.abs(offset_i) <= _rows(max_offset, s))[..., None]
             count = np.maximum(near.sum(axis=1), 1)
             out[s:s + CHUNK] = p + ((along_j + along_i) * near).sum(axis=1) / (3.0 * count)
     return out
+
+
+def _rows(max_offset, start):
+    """A chunk's max_offset: a number, or its rows' column of a per-point array."""
+    if np.ndim(max_offset) == 0:
+        return max_offset
+    return np.asarray(max_offset)[start:start + CHUNK, None]

@@ -188,6 +188,18 @@ def sample_shape(name, n, noise=0.0, seed=0):
     return noisy, clean, normals
 
 
+def sample_shape_varying_noise(name, n, low, high, seed=0):
+    """(noisy points, clean points, per-point noise sigma) of a named shape whose noise grows
+    linearly along x from `low` to `high` (fractions of the unit bbox diagonal), as a LiDAR's
+    grows with range."""
+    rng = np.random.default_rng(seed)
+    v, f = shape_mesh(name)
+    clean, _, _ = sample_mesh(v, f, n, rng)
+    x = (clean[:, 0] - clean[:, 0].min()) / np.ptp(clean[:, 0])
+    sigma = low + (high - low) * x
+    return clean + rng.normal(size=clean.shape) * sigma[:, None], clean, sigma
+
+
 # ---- Thin parts: plates, walls, tubes, brackets. A patch of 5% of the diagonal sees both
 # sides of such parts; the eval scores them and the training families teach the network
 # to keep the centre point's own sheet.
