@@ -186,11 +186,11 @@ def iterations_for_noise(sigma, radius):
     together."""
     if not (np.isfinite(sigma) and radius > 0):
         return MAX_AUTO_ITERATIONS
-    return int(np.clip(np.round(sigma / radius / AUTO_SIGMA_PER_ITERATION), 1, MAX_AUTO_ITERATIONS))
+    return int(passes_for_local_noise(sigma, radius))
 
 
 def passes_for_local_noise(sigmas, radius):
-    """(N,) `iterations_for_noise` of each point's own noise (`noise.local_noise`)."""
+    """`iterations_for_noise` of each point's own noise (`noise.local_noise`), as an array."""
     return np.clip(np.round(np.asarray(sigmas) / radius / AUTO_SIGMA_PER_ITERATION), 1, MAX_AUTO_ITERATIONS).astype(int)
 
 
