@@ -1,4 +1,6 @@
 """Noise estimation and the displacement bound that keeps a wrong prediction from wrecking a scan."""
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
@@ -13,6 +15,7 @@ from cljn_addon.core.noise import (
     estimate_noise_sigma,
     local_noise,
     surface_noise_sigma,
+    varying_local_noise,
 )
 from cljn_addon.core.patches import bbox_diagonal
 
@@ -71,8 +74,10 @@ def test_local_noise_follows_noise_that_grows_across_the_cloud():
     """A sphere whose noise grows from 0.2% to 2% along x: each end's local reading is within
     20% of its own noise (the cloud's one estimate is ~1%), and the cloud reads as varying."""
     noisy, _, sigma = sample_shape_varying_noise("sphere", 30000, 0.002, 0.02, seed=3)
-    read = local_noise(noisy, estimate_noise(noisy, 0.05 * bbox_diagonal(noisy)))
-    assert read.varies()
+    radius = 0.05 * bbox_diagonal(noisy)
+    estimate = estimate_noise(noisy, radius)
+    read = local_noise(noisy, estimate)
+    assert read.varies() and varying_local_noise(noisy, radius, estimate) is not None
     x = noisy[:, 0]
     for end in (x < np.quantile(x, 0.1), x > np.quantile(x, 0.9)):
         assert np.median(read.sigma[end]) == pytest.approx(np.median(sigma[end]), rel=0.2)
@@ -81,8 +86,38 @@ def test_local_noise_follows_noise_that_grows_across_the_cloud():
 @pytest.mark.parametrize("name, noise", [("sphere", 0.006), ("star", 0.006), ("gear", 0.011), ("stepped_block", 0.02)])
 def test_a_cloud_of_one_noise_does_not_read_as_varying(name, noise):
     noisy, _, _ = sample_shape(name, 30000, noise=noise, seed=2)
-    read = local_noise(noisy, estimate_noise(noisy, 0.05 * bbox_diagonal(noisy)))
-    assert not read.varies()
+    radius = 0.05 * bbox_diagonal(noisy)
+    assert varying_local_noise(noisy, radius, estimate_noise(noisy, radius)) is None
+
+
+def test_a_gentle_gradient_reads_as_varying():
+    """A sphere whose noise grows only from 0.3% to 0.9% along x: both readings see it."""
+    noisy, _, _ = sample_shape_varying_noise("sphere", 20000, 0.003, 0.009, seed=3)
+    radius = 0.05 * bbox_diagonal(noisy)
+    assert varying_local_noise(noisy, radius, estimate_noise(noisy, radius)) is not None
+
+
+COLUMN_HEAD = Path(__file__).resolve().parents[2] / "shared" / "data" / "meshes" / "validation" / "column_head.off"
+
+
+@pytest.mark.parametrize("name", ["gear", "column_head"])
+def test_relief_the_balls_read_as_varying_noise_is_told_apart_along_the_surface(name):
+    """Clouds of one noise whose noise balls read it as varying: a gear at 5K points and 1.5%
+    (its teeth's edges fill most balls), column_head at 20K and 0.6% (carving uneven over it)."""
+    if name == "gear":
+        noisy = sample_shape("gear", 5000, noise=0.015, seed=3)[0]
+    else:
+        if not COLUMN_HEAD.exists():
+            pytest.skip("../shared/data/meshes/validation/column_head.off absent")
+        from cljn_addon.core.evaluation.evaluate import prepare_shape
+        from cljn_addon.core.formats.meshes import read_mesh
+
+        clean = prepare_shape(*read_mesh(COLUMN_HEAD), 20000, 1)[2]
+        noisy = clean + np.random.default_rng(7).normal(scale=0.006, size=clean.shape)
+    radius = 0.05 * bbox_diagonal(noisy)
+    estimate = estimate_noise(noisy, radius)
+    assert local_noise(noisy, estimate).varies()           # the balls alone would take it
+    assert varying_local_noise(noisy, radius, estimate) is None
 
 
 def test_denoise_never_moves_a_point_beyond_the_bound():

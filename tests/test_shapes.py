@@ -85,3 +85,16 @@ def test_relief_training_family_is_closed_and_carved_at_the_noise_scale(index):
     assert 0.004 < spread < 0.15
     assert not np.array_equal(v, relief_training_shape(index + 1)[0])
 
+
+
+def test_varying_noise_grows_linearly_or_in_one_step():
+    from cljn_addon.core.evaluation.shapes import sample_shape_varying_noise
+
+    noisy, clean, sigma = sample_shape_varying_noise("sphere", 4000, 0.002, 0.02, seed=1)
+    x = clean[:, 0]
+    assert np.corrcoef(x, sigma)[0, 1] > 0.999 and np.isclose(sigma.min(), 0.002) and np.isclose(sigma.max(), 0.02)
+    _, clean, sigma = sample_shape_varying_noise("sphere", 4000, 0.002, 0.02, seed=1, profile="step")
+    middle = (clean[:, 0].min() + clean[:, 0].max()) / 2
+    assert np.allclose(sigma[clean[:, 0] < middle], 0.002) and np.allclose(sigma[clean[:, 0] >= middle], 0.02)
+    with pytest.raises(ValueError, match="profile"):
+        sample_shape_varying_noise("sphere", 100, 0.002, 0.02, profile="ramp")

@@ -15,7 +15,14 @@ from scipy.spatial import cKDTree
 
 from .config import INFLATION_NEIGHBOURS, LRMA_NEIGHBOURS, MIN_BALL_POINTS, ORIENTATIONS
 from .errors import Cancelled, InputError, positive_number
-from .noise import DISPLACEMENT_BOUND_SIGMAS, THIN_WALLED_SHARE, clamp_displacement, estimate_noise, local_noise, surface_noise_sigma
+from .noise import (
+    DISPLACEMENT_BOUND_SIGMAS,
+    THIN_WALLED_SHARE,
+    clamp_displacement,
+    estimate_noise,
+    surface_noise_sigma,
+    varying_local_noise,
+)
 from .orient import orient_normals
 from .origin import median_count_within, origin_normals
 from .patches import PatchSource, bbox_diagonal, framed_patches, from_frame
@@ -327,12 +334,12 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
     the posterior. plane_share in the result: the share of points a plane filter placed.
     Noise that changes across the cloud (ours; a LiDAR's grows with range): with
     iterations='auto', no max_displacement or noise_sigma given, and not thin-walled, where the
-    noise read near each point (`noise.local_noise`) varies by `noise.VARYING_NOISE_RATIO`
-    across the cloud, each point gets the bound, the passes (the cloud runs the most any point
-    needs; a point stops moving after its own) and the refinement reach of its own noise, the
-    stop compares moves with it, and the risk check reads it. varying_noise: that reading
-    (`noise.LocalNoise`, per point of `points`), given to the risk check's second run;
-    displacement_bound in the result is then the largest point's.
+    noise read near each point varies across the cloud, by the noise balls' reading and by the
+    surface's (`noise.varying_local_noise`), each point gets the bound, the passes (the cloud
+    runs the most any point needs; a point stops moving after its own) and the refinement reach
+    of its own noise, the stop compares moves with it, and the risk check reads it.
+    varying_noise: that reading (`noise.LocalNoise`, per point of `points`), given to the risk
+    check's second run; displacement_bound in the result is then the largest point's.
     """
     t0 = time.time()
     given = validate_points(points)
@@ -397,8 +404,7 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
         # 0.220 with own-sheet patches).
         thin_walled = move_points and two_sheets and own_sheet is not False
         if auto_iterations and max_displacement is None and noise_sigma is None and not thin_walled:
-            read = local_noise(current, estimate)
-            varying_noise = read if read is not None and read.varies() else None
+            varying_noise = varying_local_noise(current, radius0, estimate, seed=seed)
     local = varying_noise if move_points else None
     if noise_sigma is not None:
         sigma = quiet_sigma = float(noise_sigma)

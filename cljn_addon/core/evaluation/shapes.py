@@ -188,14 +188,19 @@ def sample_shape(name, n, noise=0.0, seed=0):
     return noisy, clean, normals
 
 
-def sample_shape_varying_noise(name, n, low, high, seed=0):
+def sample_shape_varying_noise(name, n, low, high, seed=0, profile="linear"):
     """(noisy points, clean points, per-point noise sigma) of a named shape whose noise grows
-    linearly along x from `low` to `high` (fractions of the unit bbox diagonal), as a LiDAR's
-    grows with range."""
+    along x from `low` to `high` (fractions of the unit bbox diagonal): linearly (profile
+    'linear', as a LiDAR's grows with range) or in one step at the middle ('step', two scans
+    of different noise merged)."""
+    if profile not in ("linear", "step"):
+        raise ValueError(f"unknown noise profile {profile!r}; choose 'linear' or 'step'")
     rng = np.random.default_rng(seed)
     v, f = shape_mesh(name)
     clean, _, _ = sample_mesh(v, f, n, rng)
     x = (clean[:, 0] - clean[:, 0].min()) / np.ptp(clean[:, 0])
+    if profile == "step":
+        x = (x >= 0.5).astype(np.float64)
     sigma = low + (high - low) * x
     return clean + rng.normal(size=clean.shape) * sigma[:, None], clean, sigma
 
