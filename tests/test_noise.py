@@ -1,6 +1,4 @@
 """Noise estimation and the displacement bound that keeps a wrong prediction from wrecking a scan."""
-from pathlib import Path
-
 import numpy as np
 import pytest
 import torch
@@ -97,23 +95,14 @@ def test_a_gentle_gradient_reads_as_varying():
     assert varying_local_noise(noisy, radius, estimate_noise(noisy, radius)) is not None
 
 
-COLUMN_HEAD = Path(__file__).resolve().parents[2] / "shared" / "data" / "meshes" / "validation" / "column_head.off"
-
-
 @pytest.mark.parametrize("name", ["gear", "column_head"])
-def test_relief_the_balls_read_as_varying_noise_is_told_apart_along_the_surface(name):
+def test_relief_the_balls_read_as_varying_noise_is_told_apart_along_the_surface(name, request):
     """Clouds of one noise whose noise balls read it as varying: a gear at 5K points and 1.5%
     (its teeth's edges fill most balls), column_head at 20K and 0.6% (carving uneven over it)."""
     if name == "gear":
         noisy = sample_shape("gear", 5000, noise=0.015, seed=3)[0]
     else:
-        if not COLUMN_HEAD.exists():
-            pytest.skip("../shared/data/meshes/validation/column_head.off absent")
-        from cljn_addon.core.evaluation.evaluate import prepare_shape
-        from cljn_addon.core.formats.meshes import read_mesh
-
-        clean = prepare_shape(*read_mesh(COLUMN_HEAD), 20000, 1)[2]
-        noisy = clean + np.random.default_rng(7).normal(scale=0.006, size=clean.shape)
+        noisy = request.getfixturevalue("column_head_relief")[4]
     radius = 0.05 * bbox_diagonal(noisy)
     estimate = estimate_noise(noisy, radius)
     assert local_noise(noisy, estimate).varies()           # the balls alone would take it

@@ -4,7 +4,6 @@ Guards what the shipped model measurably does today (see MODEL_CARD.md): it remo
 the noise and its normals are within 10% of PCA normals tuned per shape with an oracle.
 Beating tuned PCA outright is the open target of the training issue.
 """
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -340,11 +339,7 @@ def test_points_seen_from_both_sides_face_their_input_side(shipped, name, gain):
     assert sign_agreement(without_input_side, truth) + gain < sign_agreement(res.normals, truth) <= ceiling
 
 
-COLUMN_HEAD = Path(__file__).resolve().parents[2] / "shared" / "data" / "meshes" / "validation" / "column_head.off"
-
-
-@pytest.mark.skipif(not COLUMN_HEAD.exists(), reason="../shared/data/meshes/validation/column_head.off absent")
-def test_relief_the_estimate_reads_as_noise_is_kept_by_the_risk_check(shipped):
+def test_relief_the_estimate_reads_as_noise_is_kept_by_the_risk_check(shipped, column_head_relief):
     """column_head's carving is relief at the noise's own scale (its clean surface alone reads
     0.5 sigma of 0.6% noise): the estimate reads it as noise (1.5x) and the passes erode it,
     leaving the cloud worse than the input (20K points: Chamfer 9.59 against 9.07). The risk
@@ -353,12 +348,9 @@ def test_relief_the_estimate_reads_as_noise_is_kept_by_the_risk_check(shipped):
     There the normals are the output's own planes (`risk.fitted_normals`): output MSAE 0.570
     with the passes' normals, 0.452 with the check; the best plane filter then PCA normals
     (filter and normals each over 10-60 neighbours, tuned on the truth) 0.452."""
-    from cljn_addon.core.evaluation.evaluate import prepare_shape
     from cljn_addon.core.evaluation.metrics import MeshDistance
-    from cljn_addon.core.formats.meshes import read_mesh
 
-    v, f, clean, _ = prepare_shape(*read_mesh(COLUMN_HEAD), 20000, 1)
-    noisy = clean + np.random.default_rng(7).normal(scale=0.006, size=clean.shape)
+    v, f, clean, _, noisy = column_head_relief
     passes_only = denoise(noisy, shipped, iterations="auto", risk_check=False)
     blind = denoise(noisy, shipped, iterations="auto")
     given = denoise(noisy, shipped, iterations="auto", noise_sigma=0.006)
@@ -378,17 +370,12 @@ def test_relief_the_estimate_reads_as_noise_is_kept_by_the_risk_check(shipped):
     assert chamfer(given.points, clean) < min(0.8 * chamfer(noisy, clean), 1.05 * best_filter)
 
 
-@pytest.mark.skipif(not COLUMN_HEAD.exists(), reason="../shared/data/meshes/validation/column_head.off absent")
-def test_normals_only_on_relief_checks_its_surface_against_plane_filters(shipped):
+def test_normals_only_on_relief_checks_its_surface_against_plane_filters(shipped, column_head_relief):
     """Normals only at low noise checks the surface of its one pass the same way, and takes the
     normals there from the output's own planes before the posterior: column_head at 20K points
     and 0.6%, origin MSAE 0.476 -> 0.468, tuned PCA's best 0.472 (k 40); 50K, the eval's
     cloud: 0.450 -> 0.430 against 0.438. Positions stay bit-identical."""
-    from cljn_addon.core.evaluation.evaluate import prepare_shape
-    from cljn_addon.core.formats.meshes import read_mesh
-
-    _, _, clean, truth = prepare_shape(*read_mesh(COLUMN_HEAD), 20000, 1)
-    noisy = clean + np.random.default_rng(7).normal(scale=0.006, size=clean.shape)
+    _, _, clean, truth, noisy = column_head_relief
     checked = estimate_normals(noisy, shipped)
     unchecked = estimate_normals(noisy, shipped, risk_check=False)
     assert checked.plane_share > 0.5 and np.array_equal(checked.points, noisy)
