@@ -46,6 +46,25 @@ def test_an_oriented_surface_gives_oriented_normals_and_far_points_stay_finite()
     assert np.allclose(out[5:], [0.0, 0.0, -1.0], atol=1e-6)
 
 
+def test_each_point_reads_its_own_noise_where_the_noise_varies():
+    """Noise 0.3% on one half of the ridge and 1.5% on the other: each point's posterior at its
+    own sigma beats one sigma for all, quiet or noisy, and the noisiest points get the answer
+    their sigma for all would give them (the quiet ones look among more neighbours)."""
+    rng = np.random.default_rng(2)
+    _, _, dense, dense_n = _roof(400_000, rng)
+    _, _, clean, truth = _roof(20_000, rng)
+    sigma = np.where(clean[:, 1] < 0.5, 0.003, 0.015)
+    noisy = clean + rng.normal(size=clean.shape) * sigma[:, None]
+    near = np.abs(clean[:, 0]) < 3 * sigma
+    own = origin_normals(noisy, dense, dense_n, sigma)
+    quiet_for_all = origin_normals(noisy, dense, dense_n, 0.003)
+    noisy_for_all = origin_normals(noisy, dense, dense_n, 0.015)
+    quiet, loud = near & (sigma == 0.003), near & (sigma == 0.015)
+    assert msae(own, truth, quiet) < 0.9 * msae(noisy_for_all, truth, quiet)
+    assert msae(own, truth, loud) < 0.9 * msae(quiet_for_all, truth, loud)
+    assert np.allclose(own[sigma == 0.015], noisy_for_all[sigma == 0.015], atol=1e-9)
+
+
 def test_karcher_axes_ignore_signs_and_weigh_the_normals():
     a, b = np.array([0.0, 0, 1]), np.array([1.0, 0, 0])
     normals = np.array([[a, -a, b]])

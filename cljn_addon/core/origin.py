@@ -63,13 +63,16 @@ def posterior_neighbours(tree, surface, sigma, seed=0) -> int:
 def origin_normals(points, surface, surface_normals, sigma, seed=0, cancel=None):
     """Unit normals (N, 3) for the noisy `points`: the posterior mean normal of `surface` (the
     filtered cloud, its points standing for area-uniform samples) with `surface_normals`,
-    within noise `sigma` of each point; each faces the way most of its weighted neighbours'
-    normals face, so an oriented surface gives oriented normals."""
+    within noise `sigma` of each point (one number, or one per point where the noise varies
+    across the cloud); each faces the way most of its weighted neighbours' normals face, so an
+    oriented surface gives oriented normals."""
     points = np.asarray(points, np.float64)
-    if not (np.isfinite(sigma) and sigma > 0) or len(surface) < 2:
+    sigma = np.broadcast_to(np.asarray(sigma, np.float64), (len(points),))
+    if not (np.all(np.isfinite(sigma)) and np.all(sigma > 0)) or len(surface) < 2:
         return np.array(surface_normals, np.float64)
     tree = cKDTree(surface)
-    k = posterior_neighbours(tree, surface, sigma, seed)
+    # Enough neighbours for the noisiest point's reach; the quieter ones' weights fall off sooner.
+    k = posterior_neighbours(tree, surface, float(sigma.max()), seed)
     surface_normals = np.asarray(surface_normals, np.float64)
     out = np.empty((len(points), 3))
     for start in range(0, len(points), CHUNK):
@@ -79,7 +82,7 @@ def origin_normals(points, surface, surface_normals, sigma, seed=0, cancel=None)
         dist, near = tree.query(points[rows], k=k, workers=-1)
         # Relative to the nearest: the same weights once normalised, and no underflow where
         # the filtered surface lies many sigmas from the point.
-        weights = np.exp(-0.5 * (dist ** 2 - dist[:, :1] ** 2) / sigma ** 2)
+        weights = np.exp(-0.5 * (dist ** 2 - dist[:, :1] ** 2) / sigma[rows, None] ** 2)
         weights /= weights.sum(axis=1, keepdims=True)
         normals = surface_normals[near]
         axes = karcher_axes(weights, normals)
