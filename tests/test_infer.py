@@ -71,6 +71,7 @@ def test_the_risk_check_reports_progress_and_can_be_cancelled(tiny, mode):
     assert fractions[-1] == 1.0 and all(b >= a for a, b in zip(fractions, fractions[1:]))
     assert any("plane filters" in m for _, m in seen)
     assert 0.0 <= res.plane_share <= 1.0
+    assert res.noise_range is None                      # one noise over the sphere
     assert np.linalg.norm(res.points - noisy, axis=1).max() <= res.displacement_bound + 1e-9
     if mode == "normals only":
         assert np.array_equal(res.points, noisy)
@@ -245,11 +246,12 @@ def test_steps_taken_name_each_extra_step_once_and_nothing_when_none_ran():
     assert plain.steps_taken() == []
     busy = DenoiseResult(points=empty, normals=empty, outliers=np.zeros(0, bool), displacement=np.zeros(0),
                          seconds=0.0, iterations=3, thin_walled=True, split_share=0.012, rod_share=0.25,
-                         rim_share=0.031, plane_share=0.5)
+                         rim_share=0.031, plane_share=0.5, noise_range=(0.00125, 0.0114))
     steps = busy.steps_taken()
-    assert len(steps) == 5
-    assert steps[0].startswith("thin-walled")
-    assert "1.2% on merged thin walls" in steps[1]
-    assert "25.0% on rods" in steps[2]
-    assert "3.1% beyond thin parts' edges" in steps[3]
-    assert "50.0% by a plane filter" in steps[4]
+    assert len(steps) == 6
+    assert steps[0] == "noise varies across the cloud (0.00125-0.0114): each point at its own"
+    assert steps[1].startswith("thin-walled")
+    assert "1.2% on merged thin walls" in steps[2]
+    assert "25.0% on rods" in steps[3]
+    assert "3.1% beyond thin parts' edges" in steps[4]
+    assert "50.0% by a plane filter" in steps[5]

@@ -318,6 +318,7 @@ def test_batch_with_failures_exit_3_and_report(tmp_path, model_path, torus):
     assert by_name["good.ply"]["split_share"] == 0 and not by_name["good.ply"]["thin_walled"]
     # A set pass count runs no risk check (auto only): no point placed by a plane filter.
     assert by_name["good.ply"]["plane_share"] == 0
+    assert by_name["good.ply"]["noise_range"] is None   # one noise, and a set pass count
     assert 0 <= by_name["good.ply"]["rim_share"] <= 1
     for name in problems:
         assert by_name[name]["status"] == "error" and by_name[name]["output"] is None

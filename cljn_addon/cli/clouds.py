@@ -288,6 +288,7 @@ class CloudCommand:
                 "thin_walled": bool(res.thin_walled), "split_share": round(float(res.split_share), 4),
                 "rod_share": round(float(res.rod_share), 4), "rim_share": round(float(res.rim_share), 4),
                 "plane_share": round(float(res.plane_share), 4),
+                "noise_range": None if res.noise_range is None else [float(q) for q in res.noise_range],
                 "passes": passes, "stopped_by_noise": stopped,
                 "seconds": round(seconds, 3), "ran_on": ran_on}
 

@@ -52,11 +52,17 @@ class DenoiseResult:
     plane_share: float = 0.0                 # share of points a plane filter placed (`risk`): relief kept
     rim_share: float = 0.0                   # share of points beyond a thin part's edge, given its rim's normal
     ran_on: str = ""                         # device and backend, e.g. "cpu (numpy)"
+    # Where the noise varies across the cloud and each point was handled at its own
+    # (`noise.varying_local_noise`): the 10th and 90th percentiles of the points' noise; else None.
+    noise_range: tuple[float, float] | None = None
 
     def steps_taken(self) -> list[str]:
         """What the engine did beyond the passes, in words, for the command line and the
         extension's report (one wording for both); empty when nothing applied."""
         steps = []
+        if self.noise_range is not None:
+            low, high = self.noise_range
+            steps.append(f"noise varies across the cloud ({low:.3g}-{high:.3g}): each point at its own")
         if self.thin_walled:
             steps.append("thin-walled (own-side patches)")
         if self.split_share > 0:
@@ -184,6 +190,7 @@ NORMALS_RISK_CHECK_MAX_PASSES = 2
 # 0.88x at 2%). Mean Chamfer over the best pass count's (tools/iteration_study.py): 1.091 ->
 # 1.053 on the 48 clouds it was chosen on, 1.164 -> 1.107 on 21 fresh ones; no cloud worse.
 STOP_MOVE_SIGMAS = 1.15
+NOISE_RANGE_QUANTILES = (0.1, 0.9)   # the noise range reported where it varies
 
 
 def iterations_for_noise(sigma, radius):
@@ -645,4 +652,6 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
                          thin_walled=thin_walled,
                          stopped_early=stopped_early, split_share=float(np.mean(side != 0)) if len(side) else 0.0,
                          rod_share=float(np.mean(rods)) if len(rods) else 0.0, plane_share=plane_share,
-                         rim_share=rim_share)
+                         rim_share=rim_share,
+                         noise_range=None if local is None else tuple(float(q) for q in
+                                                                    np.quantile(local.sigma, NOISE_RANGE_QUANTILES)))
