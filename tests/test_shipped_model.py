@@ -235,8 +235,8 @@ def test_normals_only_reads_each_points_own_noise_where_it_varies(shipped, name,
     is two merged scans (1.5% and 0.4%). Read at the quietest balls' noise, the posterior
     looked only that far and the pass's patch was sized for it: at 30K points origin MSAE 0.173
     and 0.175 against tuned PCA's 0.011 and 0.024. Each point's own noise
-    (`noise.varying_local_noise`) now sets its posterior's reach, the noisiest region's the
-    patch: 0.0058 and 0.0215. Both must beat every PCA k, over the cloud and its noisiest part."""
+    (`noise.varying_local_noise`) now sets its posterior's reach, the cloud's the patch: 0.0058
+    and 0.0211. Both must beat every PCA k, over the cloud and its noisiest part."""
     noisy, clean, sigma = sample_shape_varying_noise(name, 20000, low, high, seed=3, profile=profile)
     truth = MeshDistance(*shape_mesh(name)).nearest(clean)[1]
     res = estimate_normals(noisy, shipped)

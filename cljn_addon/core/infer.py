@@ -427,7 +427,7 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
         # Where the noise varies (`local`), each point's posterior reads its own noise and the
         # pass's patch the cloud's: at the quiet balls' noise, a sphere whose noise grows 0.2% ->
         # 2% got origin MSAE 0.173 (tuned PCA 0.011); now 0.0058. Sized for its noisiest tenth
-        # instead, the patch changed it by under 2% on five such clouds.
+        # instead, the patch changed it by 2% at most on five such clouds.
         sigma = quiet_sigma
     if own_sheet == "auto":
         own_sheet = thin_walled
