@@ -86,7 +86,6 @@ def test_relief_training_family_is_closed_and_carved_at_the_noise_scale(index):
     assert not np.array_equal(v, relief_training_shape(index + 1)[0])
 
 
-
 def test_varying_noise_grows_linearly_or_in_one_step():
     from cljn_addon.core.evaluation.shapes import sample_shape_varying_noise
 
