@@ -128,6 +128,36 @@ def test_points_turned_to_their_input_side_come_with_its_heights():
     assert len(none_faced.idx) == 0
 
 
+def _bell(n, rng, radius=0.25, height=0.3):
+    """A one-sided shell: a cylinder's side and top, open at its base (a bust or a vase
+    scanned from above and around, never from below). Points and outward normals."""
+    side, cap = 2 * np.pi * radius * height, np.pi * radius ** 2
+    n_side = int(n * side / (side + cap))
+    t, z = rng.uniform(0, 2 * np.pi, n_side), rng.uniform(-height / 2, height / 2, n_side)
+    ring = np.c_[np.cos(t), np.sin(t), np.zeros(n_side)]
+    r, t = radius * np.sqrt(rng.random(n - n_side)), rng.uniform(0, 2 * np.pi, n - n_side)
+    top = np.c_[r * np.cos(t), r * np.sin(t), np.full(n - n_side, height / 2)]
+    return (np.concatenate([radius * ring + np.c_[np.zeros((n_side, 2)), z], top]),
+            np.concatenate([ring, np.tile([0.0, 0.0, 1.0], (n - n_side, 1))]))
+
+
+def test_a_shell_open_at_its_base_keeps_its_outward_normals():
+    """Seen through its opening, the inside of a one-sided shell is seen from both sides too,
+    but mostly from one (|vote| ~0.4); step 5 once read its input side there, which on one
+    surface is noise: 35% of the points turned, half of them wrong (sign 83%). It now keeps to
+    regions seen about as much from either side; a star's tips still get it (the test above)."""
+    rng = np.random.default_rng(0)
+    clean, truth = _bell(30000, rng)
+    denoised = clean + rng.normal(0, 0.002, clean.shape)
+    sources = clean + rng.normal(0, 0.01, clean.shape)
+    scrambled = truth * np.where(rng.random(len(truth)) < 0.5, -1.0, 1.0)[:, None]
+    _, two_sided, imbalance = clear_view_signs(denoised, scrambled, with_two_sided=True)
+    assert two_sided.mean() > 0.3 and np.median(imbalance[two_sided]) > 0.3   # what fooled step 5
+    out, faced = orient_normals(denoised, scrambled, "outward", sources=sources, with_input_side=True)
+    assert faced.closed and len(faced.idx) < 0.01 * len(clean)
+    assert sign_agreement(out, truth) >= 0.995
+
+
 def test_open_terrain_faces_up_and_a_flat_closed_box_still_faces_out():
     """A terrain scan has no inside (its flux is ~0): outward turns it up (+z); a flat closed
     box, whose bottom must face down, is still oriented by its flux."""
