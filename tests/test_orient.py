@@ -135,10 +135,10 @@ def _bell(n, rng, radius=0.25, height=0.3):
     n_side = int(n * side / (side + cap))
     t, z = rng.uniform(0, 2 * np.pi, n_side), rng.uniform(-height / 2, height / 2, n_side)
     ring = np.c_[np.cos(t), np.sin(t), np.zeros(n_side)]
+    wall = np.c_[radius * ring[:, :2], z]
     r, t = radius * np.sqrt(rng.random(n - n_side)), rng.uniform(0, 2 * np.pi, n - n_side)
     top = np.c_[r * np.cos(t), r * np.sin(t), np.full(n - n_side, height / 2)]
-    return (np.concatenate([radius * ring + np.c_[np.zeros((n_side, 2)), z], top]),
-            np.concatenate([ring, np.tile([0.0, 0.0, 1.0], (n - n_side, 1))]))
+    return np.concatenate([wall, top]), np.concatenate([ring, np.tile([0.0, 0.0, 1.0], (n - n_side, 1))])
 
 
 def test_a_shell_open_at_its_base_keeps_its_outward_normals():
