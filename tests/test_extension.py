@@ -153,7 +153,7 @@ def test_panel_menu_and_preferences_draw(bx):
         log = draw(panel_cls.draw)
         props = {name for kind, name in log if kind == "prop"}
         assert {"model_source", "auto_iterations", "iterations", "patch_radius", "use_known_noise", "noise_sigma",
-                "orientation", "device", "backend", "use_mesh_vertices"} <= props
+                "treat_as_solid", "orientation", "device", "backend", "use_mesh_vertices"} <= props
         assert ("model_path" in props) == (source == "FILE")
         ops = [name for kind, name in log if kind == "operator"]
         for idname in ("cljn.denoise_points", "cljn.estimate_normals", "cljn.restore_original", "cljn.train_model"):

@@ -351,6 +351,28 @@ def test_worker_job_cancel_leaves_object_unchanged(bx):
     assert bx.attribute_names(obj) == names and np.array_equal(bx.local_points(obj), before)
 
 
+@in_blender
+def test_solid_object_setting_reaches_the_engine(bx):
+    """Solid Object: a thin plate, read thin-walled by default, runs as a solid (as --solid)."""
+    import bpy
+
+    shapes = __import__(bx.package + ".core.evaluation.shapes", fromlist=["shapes"])
+    pipeline = bx.pipeline
+    bx.clear_scene()
+    noisy, _, _ = shapes.sample_shape("thin_plate", 8000, noise=0.006, seed=1)
+    obj = bx.make_cloud(noisy, "Plate")
+    bx.select(obj)
+    bx.use_model_file("tiny")
+    model = bx.core.load_model(bx.model_file("tiny"))
+    read = {}
+    for solid in (False, True):
+        bx.settings.treat_as_solid = solid
+        options = pipeline.options_from_settings(bpy.context, bx.settings)
+        assert options.solid is solid
+        read[solid] = pipeline.compute([pipeline.snapshot(obj)], options.replace(iterations=1), model)[0].thin_walled
+    assert read == {False: True, True: False}, read
+
+
 @in_blender(timeout=400)
 def test_train_model_makes_the_result_the_active_model(bx):
     import os

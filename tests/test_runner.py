@@ -296,6 +296,25 @@ def test_bad_input_one_line_exit_2_no_output(tmp_path, model_path, torus, name, 
     assert not (tmp_path / "out").exists() or not list((tmp_path / "out").iterdir())
 
 
+def test_solid_flag_reaches_the_engine(tmp_path, model_path):
+    """A thin plate reads thin-walled; --solid runs it as a solid, and the summary says which."""
+    from cljn_addon.core.evaluation import shapes
+
+    noisy, _, _ = shapes.sample_shape("thin_plate", 8000, noise=0.006, seed=1)
+    src = tmp_path / "plate.npy"
+    np.save(src, noisy.astype(np.float32))
+    reports = {}
+    for flags in ((), ("--solid",)):
+        report = tmp_path / f"report{len(flags)}.json"
+        proc = cli("denoise", src, "-o", tmp_path / f"out{len(flags)}.npy", "--report", report,
+                   *flags, *_base_args(model_path))
+        assert proc.returncode == 0, proc.stderr
+        reports[flags] = (json.loads(report.read_text())["inputs"][0], proc.stdout + proc.stderr)
+    (plain, said), (solid, said_solid) = reports[()], reports[("--solid",)]
+    assert plain["thin_walled"] and "thin-walled" in said and "--solid" in said
+    assert not solid["thin_walled"] and "thin-walled" not in said_solid
+
+
 def test_batch_with_failures_exit_3_and_report(tmp_path, model_path, torus):
     problems = _bad_files(tmp_path / "in", torus)
     inputs = [tmp_path / "in" / "good.ply"] + [tmp_path / "in" / n for n in problems]

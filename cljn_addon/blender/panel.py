@@ -53,6 +53,7 @@ class VIEW3D_PT_cljn_denoise(bpy.types.Panel):
         row = col.row()
         row.enabled = settings.use_known_noise
         row.prop(settings, "noise_sigma")
+        col.prop(settings, "treat_as_solid")
         col.prop(settings, "orientation")
         col.prop(settings, "device")
         col.prop(settings, "backend")

@@ -150,6 +150,6 @@ def options_from_settings(context, settings, normals_only=False) -> DenoiseOptio
                           noise_sigma=_typed_distance(settings.noise_sigma) if settings.use_known_noise else None,
                           device=_panel_or_preferences(context, settings, "device", DEVICE_TO_CORE),
                           backend=_panel_or_preferences(context, settings, "backend", BACKEND_TO_CORE),
-                          normals_only=normals_only,
+                          normals_only=normals_only, solid=settings.treat_as_solid,
                           model_path=_model_path(context, settings),
                           **_orientation(context.scene, settings.orientation))

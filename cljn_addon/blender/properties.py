@@ -61,6 +61,11 @@ class CLJN_PG_settings(bpy.types.PropertyGroup):
         description="The scanner's noise, one standard deviation, in world units (a spec sheet's range "
                     "precision); sets the pass count, the stop and the motion bound, and how far round each point "
                     "Estimate Normals looks for the surface it came from")
+    treat_as_solid: BoolProperty(
+        name="Solid Object", default=False,
+        description="Denoise Points: handle the object as solid even where its surface reads as a thin "
+                    "part's two sides (the report says thin-walled). Tick it for a sculpt whose relief, "
+                    "ribs or limbs come out under-cleaned")
     orientation: EnumProperty(name="Orientation", items=ORIENTATIONS, default="OUTWARD")
     device: EnumProperty(name="Device", items=PANEL_DEVICES, default="PREFERENCES")
     backend: EnumProperty(name="Backend", items=PANEL_BACKENDS, default="PREFERENCES")

@@ -48,7 +48,7 @@ def options_from_args(args) -> DenoiseOptions:
         orientation=args.orient, viewpoint=args.viewpoint, device=args.device, seed=args.seed,
         normals_only=args.command == "normals", model_path=args.model,
         max_displacement=getattr(args, "max_displacement", None), backend=args.backend,
-        noise_sigma=getattr(args, "noise", None))
+        noise_sigma=getattr(args, "noise", None), solid=getattr(args, "solid", False))
 
 
 def _same_file(a: Path, b: Path) -> bool:

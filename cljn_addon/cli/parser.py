@@ -128,6 +128,10 @@ def _add_cloud_options(p: argparse.ArgumentParser, normals_only: bool):
         eng.add_argument("--max-displacement", type=_positive_float, metavar="DISTANCE",
                          help="no point moves further than this, in the cloud's units (default: "
                               "3 x the noise level estimated from the cloud)")
+        eng.add_argument("--solid", action="store_true",
+                         help="handle the object as solid even where its surface reads as a thin "
+                              "part's two sides (the summary says 'thin-walled'): a sculpt whose "
+                              "relief, ribs or limbs come out under-cleaned")
     eng.add_argument("--noise", type=_positive_float, metavar="DISTANCE",
                      help=("the scanner's noise (standard deviation) in the cloud's units, when you know it "
                            "(a spec sheet's range precision): how far round each point its surface may lie, "

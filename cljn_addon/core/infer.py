@@ -64,7 +64,7 @@ class DenoiseResult:
             low, high = self.noise_range
             steps.append(f"noise varies across the cloud ({low:.3g}-{high:.3g}): each point at its own")
         if self.thin_walled:
-            steps.append("thin-walled (own-side patches)")
+            steps.append("thin-walled (own-side patches; if it is not, Solid Object or --solid)")
         if self.split_share > 0:
             steps.append(f"{self.split_share:.1%} on merged thin walls put back on their own face")
         if self.rod_share > 0:

@@ -52,7 +52,10 @@ class DenoiseOptions:
     backend: 'auto', 'torch' or 'numpy' (see resolve_backend).
     max_displacement: cap on how far any point moves (cloud units); None for 3 x the noise
     sigma estimated from the cloud. noise_sigma: the scanner's noise (standard deviation, cloud
-    units) when the user knows it, in place of the estimate; None to estimate it."""
+    units) when the user knows it, in place of the estimate; None to estimate it.
+    solid: never handle the object as thin-walled (own-sheet patches, one pass with auto
+    iterations, no risk check), though its noise balls read two sheets: a sculpt whose relief,
+    ribs or limbs read as a thin part's two sides. Denoise only."""
 
     iterations: int | str = "auto"     # or a whole number
     patch_radius_fraction: float | None = None
@@ -65,6 +68,7 @@ class DenoiseOptions:
     max_displacement: float | None = None
     backend: str = "auto"
     noise_sigma: float | None = None
+    solid: bool = False
 
     def __post_init__(self):
         if self.orientation not in ORIENTATIONS:
@@ -89,6 +93,8 @@ class DenoiseOptions:
             kwargs["iterations"] = self.iterations
             if self.max_displacement is not None:
                 kwargs["max_displacement"] = self.max_displacement
+            if self.solid:
+                kwargs["own_sheet"] = False
         if self.noise_sigma is not None:
             kwargs["noise_sigma"] = self.noise_sigma
         if self.patch_radius_fraction is not None:
