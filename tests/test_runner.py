@@ -309,7 +309,9 @@ def test_solid_flag_reaches_the_engine(tmp_path, model_path):
         proc = cli("denoise", src, "-o", tmp_path / f"out{len(flags)}.npy", "--report", report,
                    *flags, *_base_args(model_path))
         assert proc.returncode == 0, proc.stderr
-        reports[flags] = (json.loads(report.read_text())["inputs"][0], proc.stdout + proc.stderr)
+        data = json.loads(report.read_text())
+        assert data["options"]["solid"] is bool(flags)
+        reports[flags] = (data["inputs"][0], proc.stdout + proc.stderr)
     (plain, said), (solid, said_solid) = reports[()], reports[("--solid",)]
     assert plain["thin_walled"] and "thin-walled" in said and "--solid" in said
     assert not solid["thin_walled"] and "thin-walled" not in said_solid

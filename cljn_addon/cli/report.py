@@ -17,7 +17,7 @@ def build_report(args, jobs, code, seconds, model_error=None) -> dict:
                     "threads": args.threads, "seed": args.seed, "in_place": args.in_place,
                     "objects": args.objects, "use_mesh_vertices": args.use_mesh_vertices,
                     "max_displacement": getattr(args, "max_displacement", None),
-                    "noise": getattr(args, "noise", None)},
+                    "noise": getattr(args, "noise", None), "solid": getattr(args, "solid", False)},
         "inputs": [job.report for job in jobs],
         "succeeded": sum(job.report.get("status") == "ok" for job in jobs),
         "failed": sum(job.report.get("status") == "error" for job in jobs),
