@@ -255,3 +255,6 @@ def test_steps_taken_name_each_extra_step_once_and_nothing_when_none_ran():
     assert "25.0% on rods" in steps[3]
     assert "3.1% beyond thin parts' edges" in steps[4]
     assert "50.0% by a plane filter" in steps[5]
+    checked = DenoiseResult(points=empty, normals=empty, outliers=np.zeros(0, bool), displacement=np.zeros(0),
+                            seconds=0.0, iterations=1, thin_walled=True, solid_share=0.625)
+    assert checked.steps_taken()[0].startswith("read as thin-walled") and "62.5% whole-ball passes" in checked.steps_taken()[0]

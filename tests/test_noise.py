@@ -210,6 +210,31 @@ def test_thin_walled_handling_is_reported_and_can_be_turned_off():
     assert not off.thin_walled
     solid, _, _ = sample_shape("box", 8000, noise=0.006, seed=1)
     assert not denoise(solid, model, iterations="auto").thin_walled
+    forced = denoise(solid, model, iterations="auto", own_sheet=True)
+    assert forced.thin_walled and forced.iterations == 1 and forced.solid_share == 0.0   # forced: not checked
+
+
+def test_a_thin_walled_reading_is_checked_region_by_region_against_a_solids_passes():
+    """Read as thin-walled with auto iterations: each region keeps the own-sheet pass or a
+    solid's passes by their risk (`infer.own_sheet_or_solid`); where the own-sheet result is
+    made far worse than the solid's, the solid's is taken there."""
+    from cljn_addon.core.infer import own_sheet_or_solid
+
+    noisy, _, truth = sample_shape("thin_plate", 8000, noise=0.006, seed=1)
+    model = build_model("tiny").eval()
+    auto = denoise(noisy, model, iterations="auto")
+    unchecked = denoise(noisy, model, iterations="auto", risk_check=False)
+    assert auto.thin_walled and unchecked.thin_walled and unchecked.solid_share == 0.0
+    assert 0.0 <= auto.solid_share <= 1.0
+    assert (auto.solid_share > 0) == any("whole-ball passes" in step for step in auto.steps_taken())
+    # Own-sheet positions pushed 4 sigma off along the normal on one half of the plate: the
+    # solid's passes must win that half (each region's risk is averaged over 1,024 points).
+    sigma = 0.006
+    own = noisy.copy()
+    half = noisy[:, 0] > np.median(noisy[:, 0])
+    own[half] += 4 * sigma * truth[half]
+    _, _, solid = own_sheet_or_solid(noisy, model, own, truth.astype(np.float64), sigma, 3 * sigma)
+    assert solid[half].mean() > 0.9
 
 
 def test_solid_option_turns_the_thin_walled_handling_off():

@@ -315,6 +315,7 @@ def test_solid_flag_reaches_the_engine(tmp_path, model_path):
     (plain, said), (solid, said_solid) = reports[()], reports[("--solid",)]
     assert plain["thin_walled"] and "thin-walled" in said and "--solid" in said
     assert not solid["thin_walled"] and "thin-walled" not in said_solid
+    assert 0.0 <= plain["solid_share"] <= 1.0 and solid["solid_share"] == 0.0
 
 
 def test_batch_with_failures_exit_3_and_report(tmp_path, model_path, torus):
