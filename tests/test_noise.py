@@ -214,10 +214,11 @@ def test_thin_walled_handling_is_reported_and_can_be_turned_off():
     assert forced.thin_walled and forced.iterations == 1 and forced.solid_share == 0.0   # forced: not checked
 
 
-def test_a_thin_walled_reading_is_checked_region_by_region_against_a_solids_passes():
+def test_a_thin_walled_reading_is_checked_region_by_region_against_a_solids_passes(monkeypatch):
     """Read as thin-walled with auto iterations: each region keeps the own-sheet pass or a
     solid's passes by their risk (`infer.own_sheet_or_solid`); where the own-sheet result is
     made far worse than the solid's, the solid's is taken there."""
+    from cljn_addon.core import infer
     from cljn_addon.core.infer import own_sheet_or_solid
 
     noisy, _, truth = sample_shape("thin_plate", 8000, noise=0.006, seed=1)
@@ -233,8 +234,14 @@ def test_a_thin_walled_reading_is_checked_region_by_region_against_a_solids_pass
     own = noisy.copy()
     half = noisy[:, 0] > np.median(noisy[:, 0])
     own[half] += 4 * sigma * truth[half]
-    _, _, solid = own_sheet_or_solid(noisy, model, own, truth.astype(np.float64), sigma, 3 * sigma)
+    _, _, solid, _ = own_sheet_or_solid(noisy, model, own, truth.astype(np.float64), sigma, 3 * sigma)
     assert solid[half].mean() > 0.9
+    # Only where the noise plans at most `RISK_CHECK_MAX_PASSES` passes (1 here): below that,
+    # the cloud runs as it did unchecked.
+    monkeypatch.setattr(infer, "RISK_CHECK_MAX_PASSES", 0)
+    gated = denoise(noisy, model, iterations="auto")
+    assert gated.thin_walled and gated.solid_share == 0.0
+    assert np.allclose(gated.points, unchecked.points)
 
 
 def test_solid_option_turns_the_thin_walled_handling_off():
