@@ -480,8 +480,8 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
         # instead, the patch changed it by 2% at most on five such clouds.
         sigma = quiet_sigma
     # A cloud read thin-walled is checked against a solid's passes (`own_sheet_or_solid`), at
-    # the noise the plane-filter check covers too: at 1.5% (4 passes) the open thin box lost
-    # (Chamfer 5.47 -> 5.77, sign output 96.8% -> 95.4%), at 0.6-1.1% the thin shapes gained.
+    # the noise the plane-filter check covers too: measured at 0.6-1.1% (the eval's thin shapes
+    # read thin-walled up to 1.1%); more passes would make the four runs dearer still, untested.
     check_solid = (move_points and auto_iterations and risk_check and own_sheet == "auto" and thin_walled
                    and np.isfinite(sigma) and sigma > 0
                    and iterations_for_noise(sigma, radius0) <= RISK_CHECK_MAX_PASSES)
