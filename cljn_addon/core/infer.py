@@ -658,7 +658,7 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
             progress=sub_progress, patch_radius=patch_radius, patch_radius_fraction=fraction,
             points_per_patch=points_per_patch, device=device, refine=refine,
             normal_motion_only=normal_motion_only, rod_normals=rod_normals, split_walls=split_walls)
-        rods &= ~solid
+        # `rods` stays: the solid's run took its rods' normals from their sections too.
         side[solid] = solid_side[solid]      # the solid's run split its own walls
         solid_share = float(np.mean(solid))
     out_points = given.copy()          # unmoved points (outliers, normals only) bit-identical
