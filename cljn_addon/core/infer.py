@@ -28,7 +28,7 @@ from .origin import median_count_within, origin_normals
 from .patches import PatchSource, bbox_diagonal, framed_patches, from_frame
 from .refine import inflation, lrma_update
 from .rims import rim_normals as rim_outward_normals
-from .risk import choose_by_risk, fitted_normals, normal_risk, probe_offsets, regional_choice
+from .risk import choose_among, choose_by_risk, fitted_normals, probe_offsets
 from .rods import RodNormals, section_radius
 from .sheets import in_faced_region, seat_on_facing_face, split_merged_walls
 
@@ -270,14 +270,14 @@ def own_sheet_or_solid(points, model, own_sheet_points, normals, sigma, bound, s
                        progress=None, **options):
     """Per region, a thin-walled object's own-sheet pass (`own_sheet_points`, `normals`) or a
     solid's passes (whole-ball patches, as many as the noise needs), whichever Stein's unbiased
-    risk estimate puts nearer the surface (`risk.normal_risk` along `normals`, averaged by
-    `risk.regional_choice`). A sculpt's limbs, ribs and relief fill balls with two sheets as a
-    wall does (dino at 0.6%, 50K points: two-sheet share 0.39, Chamfer x 1e5 1.74 by the
-    own-sheet pass, 1.42 by a solid's two), but there a solid's passes do better; on a wall
-    2-3 sigma thick they pull the faces together, but where the walls split after them
-    (`sheets.split_merged_walls`, as the own-sheet pass's are before the choice) they often do
-    better there too (l_bracket at 0.6%: 2.22 own-sheet, 1.80 solid). Both runs are repeated on
-    the input nudged along `normals` for the divergence (`risk.probe_offsets`): four in all.
+    risk estimate puts nearer the surface along `normals` (`risk.choose_among`). A sculpt's
+    limbs, ribs and relief fill balls with two sheets as a wall does (dino at 0.6%, 50K points:
+    two-sheet share 0.39, Chamfer x 1e5 1.74 by the own-sheet pass, 1.42 by a solid's two), but
+    there a solid's passes do better; on a wall 2-3 sigma thick they pull the faces together,
+    but where the walls split after them (`sheets.split_merged_walls`, as the own-sheet pass's
+    are before the choice) they often do better there too (l_bracket at 0.6%: 2.22 own-sheet,
+    1.80 solid). Both runs are repeated on the input nudged along `normals` for the divergence
+    (`risk.probe_offsets`): four in all.
 
     points: the input (N, 3), in the frame of `own_sheet_points`. progress(start, width): a
     callback for a part of the bar, or None. options: `_run`'s patch, device and refinement
@@ -294,10 +294,10 @@ def own_sheet_or_solid(points, model, own_sheet_points, normals, sigma, bound, s
                      progress=parts(0.55, 0.15), **common)
     solid_probe = _run(probe, model, solid.iterations, own_sheet=False, max_displacement=bound,
                        normals_pass=False, progress=parts(0.7, 0.25), **common)
-    risks = np.stack([normal_risk(points, normals, own_sheet_points, own_probe.points, amplitude, sigma),
-                      normal_risk(points, normals, solid.points, solid_probe.points, amplitude, sigma)])
-    chosen = regional_choice(points, risks, seed=seed, cancel=cancel) == 1
-    positions = np.where(chosen[:, None], solid.points, own_sheet_points)
+    positions, choice = choose_among(points, normals, [(own_sheet_points, own_probe.points),
+                                                       (solid.points, solid_probe.points)],
+                                     amplitude, sigma, seed=seed, cancel=cancel)
+    chosen = choice == 1
     solid_normals = solid.normals.astype(np.float64)
     turned = np.einsum("ij,ij->i", solid_normals, normals) < 0
     solid_normals[turned] *= -1
@@ -384,9 +384,9 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
     only checks the surface its one pass filtered in the same way, at the same noise, before
     the posterior. plane_share in the result: the share of points a plane filter placed.
     On a cloud read as thin-walled (own_sheet='auto') with iterations='auto', at the same low
-    noise, the check is between its own-sheet pass and a solid's passes instead (`own_sheet_or_solid`): a sculpt's
-    limbs and relief also fill balls with two sheets. solid_share in the result: the share of
-    points the solid's passes placed.
+    noise, the check is between its own-sheet pass and a solid's passes instead
+    (`own_sheet_or_solid`): a sculpt's limbs and relief also fill balls with two sheets.
+    solid_share in the result: the share of points the solid's passes placed.
     Noise that changes across the cloud (ours; a LiDAR's grows with range): with
     iterations='auto', no max_displacement or noise_sigma given, and not thin-walled, where the
     noise read near each point varies across the cloud, by the noise balls' reading and by the
@@ -452,9 +452,10 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
     if varying_noise is not None:          # given per point of `points`: keep the inliers'
         varying_noise = type(varying_noise)(*(np.asarray(field)[inliers] for field in varying_noise))
     # Normals only needs sigma (the posterior's reach) and, for its risk check, the quiet sigma
-    # and how thin-walled it is; moving, also the bound and the passes.
-    if (noise_sigma is None or risk_check) if not move_points else (bound is None or auto_iterations
-                                                                   or own_sheet == "auto"):
+    # and how thin-walled it is; moving, also the bound and the passes (from a given sigma too)
+    # and, with own_sheet='auto', how thin-walled it is (the risk checks' runs give both).
+    if (noise_sigma is None or risk_check) if not move_points else (
+            own_sheet == "auto" or noise_sigma is None and (bound is None or auto_iterations)):
         report(0.0, "estimating the noise level")
         estimate = estimate_noise(current, radius0, seed=seed)
         sigma, quiet_sigma = estimate.sigma, estimate.quiet_sigma

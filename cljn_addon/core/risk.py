@@ -80,6 +80,12 @@ def choose_by_risk(noisy, normals, network, network_probe, amplitude, offsets, s
         if cancel is not None and cancel.is_set():
             raise Cancelled("cancelled")
         candidates.append((pca_projection_filter(noisy, k), pca_projection_filter(probe, k)))
+    return choose_among(noisy, normals, candidates, amplitude, sigma, seed=seed, cancel=cancel)
+
+
+def choose_among(noisy, normals, candidates, amplitude, sigma, seed=0, cancel=None):
+    """(positions (N, 3), choice (N,)): per region, the candidate of least mean risk along the
+    normals. candidates: [(filtered, filtered on the nudged input)] (`probe_offsets`' nudge)."""
     risks = np.stack([normal_risk(noisy, normals, f, fp, amplitude, sigma) for f, fp in candidates])
     choice = regional_choice(noisy, risks, seed=seed, cancel=cancel)
     positions = np.stack([f for f, _ in candidates])[choice, np.arange(len(noisy))]
