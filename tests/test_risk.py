@@ -7,7 +7,7 @@ from cljn_addon.core.evaluation.baselines import pca_projection_filter
 from cljn_addon.core.evaluation.shapes import sample_shape
 from cljn_addon.core.noise import estimate_noise
 from cljn_addon.core.patches import bbox_diagonal
-from cljn_addon.core.risk import PROBE_SIGMAS, choose_by_risk, fitted_normals, normal_risk, probe_offsets
+from cljn_addon.core.risk import PROBE_SIGMAS, choose_among, choose_by_risk, fitted_normals, normal_risk, probe_offsets
 
 SIGMA = 0.01
 
@@ -60,6 +60,21 @@ def test_relief_takes_the_plane_filter_and_flat_parts_keep_the_flattener():
     assert error(positions, right) < 0.05 * SIGMA ** 2
     assert error(positions) < 0.8 * error(flat)
     assert error(positions) < min(error(pca_projection_filter(noisy, k)) for k in (10, 20, 40, 80))
+
+
+def test_each_point_takes_the_position_of_the_candidate_its_region_chose():
+    """Three candidates (exact, half-flattened, raised by 2 sigma): every output row is the
+    chosen candidate's own row, in the candidates' dtype, and the raised one is never chosen."""
+    noisy, clean, normals = relief_plane(8000, seed=7, relief=False)
+    amplitude, offsets = probe_offsets(normals, SIGMA, seed=8)
+    candidates = [(c.astype(np.float32), (c + offsets).astype(np.float32))
+                  for c in (clean, 0.5 * (noisy + clean), clean + [0.0, 0.0, 2 * SIGMA])]
+    positions, choice = choose_among(noisy, normals, candidates, amplitude, SIGMA)
+    assert positions.dtype == np.float32 and positions.shape == noisy.shape
+    assert set(np.unique(choice)) <= {0, 1}
+    expected = np.stack([f for f, _ in candidates])[choice, np.arange(len(noisy))]
+    assert np.array_equal(positions, expected)
+    assert all(positions is not f for f, _ in candidates)
 
 
 def test_a_cancel_stops_the_choice_between_plane_filters(monkeypatch):

@@ -88,7 +88,11 @@ def choose_among(noisy, normals, candidates, amplitude, sigma, seed=0, cancel=No
     normals. candidates: [(filtered, filtered on the nudged input)] (`probe_offsets`' nudge)."""
     risks = np.stack([normal_risk(noisy, normals, f, fp, amplitude, sigma) for f, fp in candidates])
     choice = regional_choice(noisy, risks, seed=seed, cancel=cancel)
-    positions = np.stack([f for f, _ in candidates])[choice, np.arange(len(noisy))]
+    # Row by row per candidate, not a stack of all: the stack costs C x N x 3 floats at 10M points.
+    positions = np.array(candidates[0][0], dtype=np.result_type(*[f for f, _ in candidates]))
+    for index, (filtered, _) in enumerate(candidates[1:], start=1):
+        rows = choice == index
+        positions[rows] = filtered[rows]
     return positions, choice
 
 
