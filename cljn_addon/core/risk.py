@@ -74,25 +74,33 @@ def choose_by_risk(noisy, normals, network, network_probe, amplitude, offsets, s
     """(positions (N, 3), choice (N,): 0 the network's, i the i-th plane filter's of
     `PLANE_NEIGHBOURS`). amplitude, offsets: the nudge (`probe_offsets`) network_probe ran on."""
     probe = noisy + offsets
-    candidates = [(network, network_probe)]
-    for k in PLANE_NEIGHBOURS:
-        # Each filter pair takes minutes at 10M points: a cancel stops between them.
-        if cancel is not None and cancel.is_set():
-            raise Cancelled("cancelled")
-        candidates.append((pca_projection_filter(noisy, k), pca_projection_filter(probe, k)))
-    return choose_among(noisy, normals, candidates, amplitude, sigma, seed=seed, cancel=cancel)
+
+    def candidates():
+        yield network, network_probe
+        for k in PLANE_NEIGHBOURS:
+            # Each filter pair takes minutes at 10M points: a cancel stops between them.
+            if cancel is not None and cancel.is_set():
+                raise Cancelled("cancelled")
+            yield pca_projection_filter(noisy, k), pca_projection_filter(probe, k)
+
+    return choose_among(noisy, normals, candidates(), amplitude, sigma, seed=seed, cancel=cancel)
 
 
 def choose_among(noisy, normals, candidates, amplitude, sigma, seed=0, cancel=None):
     """(positions (N, 3), choice (N,)): per region, the candidate of least mean risk along the
-    normals. candidates: [(filtered, filtered on the nudged input)] (`probe_offsets`' nudge)."""
-    risks = np.stack([normal_risk(noisy, normals, f, fp, amplitude, sigma) for f, fp in candidates])
-    choice = regional_choice(noisy, risks, seed=seed, cancel=cancel)
-    # Row by row per candidate, not a stack of all: the stack costs C x N x 3 floats at 10M points.
-    positions = np.array(candidates[0][0], dtype=np.result_type(*[f for f, _ in candidates]))
-    for index, (filtered, _) in enumerate(candidates[1:], start=1):
+    normals. candidates: (filtered, filtered on the nudged input) pairs (`probe_offsets`' nudge),
+    a list or a generator: each nudged run is dropped once its risk is taken."""
+    # At 10M points each (N, 3) array is 240 MB: hold one nudged run at a time, and gather the
+    # chosen rows candidate by candidate rather than from a stack of all of them.
+    filtered, risks = [], []
+    for f, fp in candidates:
+        risks.append(normal_risk(noisy, normals, f, fp, amplitude, sigma))
+        filtered.append(f)
+    choice = regional_choice(noisy, np.stack(risks), seed=seed, cancel=cancel)
+    positions = np.array(filtered[0], dtype=np.result_type(*filtered))
+    for index, f in enumerate(filtered[1:], start=1):
         rows = choice == index
-        positions[rows] = filtered[rows]
+        positions[rows] = f[rows]
     return positions, choice
 
 
