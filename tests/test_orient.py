@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from cljn_addon.core import InputError
+from cljn_addon.core import InputError, orient
 from cljn_addon.core.evaluation.baselines import pca_normals
 from cljn_addon.core.evaluation.metrics import sign_agreement, sign_ceiling_normals
 from cljn_addon.core.evaluation.shapes import normalise_unit_diagonal, sample_shape, shape_mesh
@@ -103,11 +103,15 @@ def test_outward_orientation_of_thin_parts_reaches_its_ceiling(name):
         assert sign_agreement(orient_normals(noisy, scrambled, "outward", sources=sources), truth) >= ceiling - 0.015
 
 
-def test_points_turned_to_their_input_side_come_with_its_heights():
+@pytest.mark.parametrize("chunk", [None, 1_000])
+def test_points_turned_to_their_input_side_come_with_its_heights(chunk, monkeypatch):
     """A wall 2 sigma thick drawn into one sheet (thin-walled): step 5 turns each point to the
     side of the local input median its own input lay on (right for ~Phi(1) = 84%), and hands
     back that median and the heights' variance along the turned normal (what the seating in
-    `sheets.seat_on_facing_face` reads, so it need not search the input again)."""
+    `sheets.seat_on_facing_face` reads, so it need not search the input again). Taken in
+    chunks of rows (`orient.INPUT_SIDE_CHUNK`, for 10M-point clouds), the same."""
+    if chunk is not None:
+        monkeypatch.setattr(orient, "INPUT_SIDE_CHUNK", chunk)
     rng = np.random.default_rng(3)
     n, sigma, half = 20000, 0.01, 0.01
     xy = rng.random((n, 2))

@@ -71,6 +71,7 @@ SEEN_CLOSED_SHARE = 0.5
 TWO_SIDED_NEIGHBOURS = 30
 TWO_SIDED_SHARE = 0.5
 INPUT_SIDE_NEIGHBOURS = 48
+INPUT_SIDE_CHUNK = 100_000        # rows of input heights at a time (~300 MB)
 # On a closed object not found thin-walled, step 5 keeps to regions (connected k-NN components
 # of the points it would turn) seen about as much from either side, a median |vote| of at most
 # this: a thin tip is (star prism, 30K points at 0.6% and 2%: every tip 0.05-0.08), a one-sided
@@ -262,14 +263,20 @@ def _face_input_side(points, tree, normals, sources, two_sided, imbalance=None):
         return normals, NO_INPUT_SIDE
     nrm = normals[idx]
     source_tree = tree if np.array_equal(sources, points) else cKDTree(sources)   # normals only: the same cloud
-    heights = input_heights(source_tree, sources, points[idx], nrm)
-    median = np.median(heights, axis=1)
+    # In chunks: a wall's points are most of a thin-walled cloud, and their heights with the
+    # neighbour query and gathered inputs behind them cost ~3 KB a point at once (30 GB at 10M).
+    median, variance = np.empty(len(idx)), np.empty(len(idx))
+    for s in range(0, len(idx), INPUT_SIDE_CHUNK):
+        rows = idx[s:s + INPUT_SIDE_CHUNK]
+        heights = input_heights(source_tree, sources, points[rows], normals[rows])
+        median[s:s + INPUT_SIDE_CHUNK] = np.median(heights, axis=1)
+        variance[s:s + INPUT_SIDE_CHUNK] = heights.var(axis=1)
     side = np.einsum("mc,mc->m", sources[idx] - points[idx], nrm) - median
     turn = np.where(side < 0, -1.0, 1.0)
     out = normals.copy()
     out[idx] = nrm * turn[:, None]
     # Along the turned normal the heights change sign: the median with them, not the variance.
-    return out, InputSide(idx, median * turn, heights.var(axis=1))
+    return out, InputSide(idx, median * turn, variance)
 
 
 def balanced_regions(idx, near, imbalance):
