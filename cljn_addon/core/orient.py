@@ -71,6 +71,9 @@ SEEN_CLOSED_SHARE = 0.5
 TWO_SIDED_NEIGHBOURS = 30
 TWO_SIDED_SHARE = 0.5
 INPUT_SIDE_NEIGHBOURS = 48
+# Edges of the k-NN graph (10 a point) read at a time: their gathered normals and positions
+# would otherwise cost ~1.1 KB a point at once (11 GB at 10M points).
+EDGE_CHUNK = 250_000
 INPUT_SIDE_CHUNK = 100_000        # rows of input heights at a time (~300 MB)
 # On a closed object not found thin-walled, step 5 keeps to regions (connected k-NN components
 # of the points it would turn) seen about as much from either side, a median |vote| of at most
@@ -80,14 +83,27 @@ INPUT_SIDE_CHUNK = 100_000        # rows of input heights at a time (~300 MB)
 BALANCED_VOTE = 0.15
 
 
+def _edge_dots(normals, i, j):
+    """n_i . n_j per edge, in chunks of `EDGE_CHUNK` edges."""
+    dot = np.empty(len(i))
+    for s in range(0, len(i), EDGE_CHUNK):
+        e = slice(s, s + EDGE_CHUNK)
+        dot[e] = np.einsum("ec,ec->e", normals[i[e]], normals[j[e]])
+    return dot
+
+
 def _reflected_agreement(points, normals, i, j):
-    """n_j . (n_i reflected across the plane bisecting edge i-j)."""
-    d = points[j] - points[i]
-    length = np.linalg.norm(d, axis=1, keepdims=True)
-    d = d / np.maximum(length, 1e-300)
-    n_i = normals[i]
-    reflected = n_i - 2.0 * np.einsum("ec,ec->e", n_i, d)[:, None] * d
-    return np.einsum("ec,ec->e", reflected, normals[j])
+    """n_j . (n_i reflected across the plane bisecting edge i-j), in chunks of `EDGE_CHUNK` edges."""
+    agreement = np.empty(len(i))
+    for s in range(0, len(i), EDGE_CHUNK):
+        ie, je = i[s:s + EDGE_CHUNK], j[s:s + EDGE_CHUNK]
+        d = points[je] - points[ie]
+        length = np.linalg.norm(d, axis=1, keepdims=True)
+        d = d / np.maximum(length, 1e-300)
+        n_i = normals[ie]
+        reflected = n_i - 2.0 * np.einsum("ec,ec->e", n_i, d)[:, None] * d
+        agreement[s:s + EDGE_CHUNK] = np.einsum("ec,ec->e", reflected, normals[je])
+    return agreement
 
 
 def _tree_signs(n_nodes, i, j, cost, sign_of_edge, labels, n_labels):
@@ -105,6 +121,7 @@ def _tree_signs(n_nodes, i, j, cost, sign_of_edge, labels, n_labels):
     jj = np.concatenate([j, first])
     cc = np.concatenate([cost, np.full(n_labels, 1e-9)])
     graph = coo_matrix((cc, (ii, jj)), shape=(n_nodes + 1, n_nodes + 1)).tocsr()
+    del ii, jj, cc
     graph = graph.maximum(graph.T)
     forest = minimum_spanning_tree(graph)
     _, pred = breadth_first_order(forest + forest.T, virtual, directed=False, return_predecessors=True)
@@ -140,8 +157,10 @@ def orient_outward(points: np.ndarray, normals: np.ndarray, k: int = 10, sources
     # Geometry is read from points slid onto their own tangent planes (through the centroid
     # of their neighbours): noise across the surface would otherwise swamp short edges.
     centroid = points[nbr].mean(axis=1)
+    del nbr
     flat = points - np.einsum("ec,ec->e", points - centroid, normals)[:, None] * normals
-    dot = np.einsum("ec,ec->e", normals[i], normals[j])
+    del centroid
+    dot = _edge_dots(normals, i, j)
     reflected = _reflected_agreement(flat, normals, i, j)
     # Smooth: nearly parallel normals, and both criteria agree on the sign (this keeps the
     # two sides of a thin spike, whose normals are nearly opposite, apart).
@@ -162,11 +181,11 @@ def orient_outward(points: np.ndarray, normals: np.ndarray, k: int = 10, sources
 
     # 1. Hoppe propagation inside smooth regions.
     si, sj = i[smooth], j[smooth]
-    region_graph = coo_matrix((np.ones(len(si)), (si, sj)), shape=(n, n))
-    n_reg, region = connected_components(region_graph, directed=False)
+    n_reg, region = connected_components(coo_matrix((np.ones(len(si)), (si, sj)), shape=(n, n)), directed=False)
     sign = _tree_signs(n, si, sj, 1.0 - np.abs(dot[smooth]) + 1e-6,
                        lambda a, b: np.where(np.einsum("ec,ec->e", normals[a], normals[b]) < 0, -1, 1),
                        region, n_reg)
+    del si, sj
     oriented = normals * sign[:, None]
 
     # 2. Regions voted together across sharp edges.
