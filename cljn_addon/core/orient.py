@@ -183,7 +183,7 @@ def orient_outward(points: np.ndarray, normals: np.ndarray, k: int = 10, sources
     si, sj = i[smooth], j[smooth]
     n_reg, region = connected_components(coo_matrix((np.ones(len(si)), (si, sj)), shape=(n, n)), directed=False)
     sign = _tree_signs(n, si, sj, 1.0 - np.abs(dot[smooth]) + 1e-6,
-                       lambda a, b: np.where(np.einsum("ec,ec->e", normals[a], normals[b]) < 0, -1, 1),
+                       lambda a, b: np.where(_edge_dots(normals, a, b) < 0, -1, 1),
                        region, n_reg)
     del si, sj
     oriented = normals * sign[:, None]
@@ -287,7 +287,7 @@ def _face_input_side(points, tree, normals, sources, two_sided, imbalance=None):
     median, variance = np.empty(len(idx)), np.empty(len(idx))
     for s in range(0, len(idx), INPUT_SIDE_CHUNK):
         rows = idx[s:s + INPUT_SIDE_CHUNK]
-        heights = input_heights(source_tree, sources, points[rows], normals[rows])
+        heights = input_heights(source_tree, sources, points[rows], nrm[s:s + INPUT_SIDE_CHUNK])
         median[s:s + INPUT_SIDE_CHUNK] = np.median(heights, axis=1)
         variance[s:s + INPUT_SIDE_CHUNK] = heights.var(axis=1)
     side = np.einsum("mc,mc->m", sources[idx] - points[idx], nrm) - median
