@@ -304,3 +304,43 @@ def test_normals_only_reads_the_noise_in_the_quietest_balls():
     assert whole > 1.3 * 0.006
     assert res.noise_sigma == pytest.approx(quiet, rel=0.05)
     assert 0.85 * 0.006 < res.noise_sigma < 1.2 * 0.006
+
+
+def _city_street(length, depth, count, noise=0.02, seed=3):
+    from cljn_addon.core.evaluation.shapes import city_street, sample_mesh
+
+    vertices, faces = city_street(length, depth)
+    rng = np.random.default_rng(seed)
+    clean, _, _ = sample_mesh(vertices, faces, count, rng)
+    return vertices, faces, clean + rng.normal(scale=noise, size=clean.shape)
+
+
+def test_a_scene_reads_its_noise_in_balls_of_a_patchs_points(monkeypatch):
+    """300 m of street, 40K points, 2 cm of noise: a ball of 5% of the diagonal (15 m) holds
+    buildings, cars and poles, and read them as 1.75 m of noise, which set the bound. In balls
+    of 256 points (4.7 m: their structure still reads as 8.7 cm) the quietest balls read 2.2 cm."""
+    import cljn_addon.core.noise as noise
+
+    _, _, noisy = _city_street(300.0, 10.0, 40_000)
+    radius = 0.05 * bbox_diagonal(noisy)
+    est = estimate_noise(noisy, radius, seed=0)
+    assert est.scene_radius < radius / noise.SCENE_SPAN
+    assert 0.015 < est.sigma < 0.03 and est.sigma == est.quiet_sigma
+    monkeypatch.setattr(noise, "SCENE_RATIO", np.inf)
+    whole = estimate_noise(noisy, radius, seed=0)
+    assert np.isnan(whole.scene_radius) and whole.sigma > 10 * est.sigma
+
+
+def test_a_dense_object_is_not_read_as_a_scene(monkeypatch):
+    """250K points on a sphere: its 5% ball spans over twice the 256-point ball, so the small
+    balls are read too, but they read what the patch-radius balls read: the estimate stands."""
+    import cljn_addon.core.noise as noise
+
+    noisy, _, _ = sample_shape("sphere", 250_000, noise=0.01, seed=1)
+    calls = []
+    monkeypatch.setattr(noise, "_estimate", lambda *a, _f=noise._estimate: calls.append(a[1]) or _f(*a))
+    est = estimate_noise(noisy, 0.05, seed=0)
+    assert len(calls) == 2 and calls[1] < 0.05 / noise.SCENE_SPAN      # the small balls were read
+    monkeypatch.setattr(noise, "SCENE_SPAN", np.inf)
+    unchecked = estimate_noise(noisy, 0.05, seed=0)
+    assert np.isnan(est.scene_radius) and est.sigma == unchecked.sigma and 0.9 < est.sigma / 0.01 < 1.15

@@ -516,3 +516,22 @@ def test_star_prism_tips_placed_by_a_plane_filter_are_seated_too(shipped, monkey
     assert sign_agreement(seated.normals, n_seated) >= 0.985
     assert d_seated.mean() <= d_left.mean() * 1.01
     assert seated.displacement.max() <= seated.displacement_bound * (1 + 1e-9)
+
+
+def test_a_sparse_street_300_m_long_is_not_wrecked(shipped):
+    """300 m of street in 40K points (a 5% patch is 15 m: buildings, cars and poles at once) read
+    as 1.75 m of noise: the bound let points move 5.25 m and P2S went from 1.60 cm to 23.9 cm.
+    Read as a scene (`noise.SCENE_SPAN`), its patches are 4.7 m balls and its noise the quiet
+    balls' 2.2 cm: no point moves beyond 3.5 sigma of the true noise. P2S is 2.54 cm: still
+    above the input's, what issue #12 leaves open for scenes this sparse."""
+    from cljn_addon.core.evaluation.shapes import city_street, sample_mesh
+
+    vertices, faces = city_street(300.0, 10.0)
+    rng = np.random.default_rng(3)
+    clean, _, _ = sample_mesh(vertices, faces, 40_000, rng)
+    noisy = clean + rng.normal(scale=0.02, size=clean.shape)
+    res = denoise(noisy, shipped, iterations="auto")
+    assert 0.015 < res.noise_sigma < 0.03
+    assert np.linalg.norm(res.points - noisy, axis=1).max() < 3.5 * 0.02
+    surface = MeshDistance(vertices, faces)
+    assert surface.distance(res.points).mean() < 2.0 * surface.distance(noisy).mean()

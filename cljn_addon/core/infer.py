@@ -459,6 +459,13 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
         report(0.0, "estimating the noise level")
         estimate = estimate_noise(current, radius0, seed=seed)
         sigma, quiet_sigma = estimate.sigma, estimate.quiet_sigma
+        if np.isfinite(estimate.scene_radius) and patch_radius is None:
+            # A scene (`noise.SCENE_SPAN`): 5% of its extent holds cars, walls and poles at
+            # once, a patch the network never saw; its patches are the balls its noise was
+            # read in (a 150 m street, 100K points, 2 cm noise: P2S 1.60 cm in, 5.67 cm out
+            # with 7.7 m patches and 10.3 cm read there; 1.50 cm with 2.8 m patches and 1.98 cm).
+            fraction *= estimate.scene_radius / radius0
+            radius0 = estimate.scene_radius
         two_sheets = estimate.two_sheet_share >= THIN_WALLED_SHARE
         # Normals only keeps whole-ball patches on thin walls (stool at 0.6%, 50K: MSAE 0.208,
         # 0.220 with own-sheet patches).

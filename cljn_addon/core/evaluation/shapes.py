@@ -399,6 +399,32 @@ def street_scene(length=8.0, depth=6.0, wall_gap=0.6):
         (car_v, car_f[~underside]),
         (pole_v + [3.0, -2.5, 2.0], pole_f))
 
+def city_street(length=150.0, depth=30.0, seed=5):
+    """A longer street in metres: open ground `length` x `depth`, a row of buildings 6-20 m tall
+    (their fronts 6 m back from the far edge), cars (boxes with no underside) along both kerbs
+    and a pole every 25 m. At this extent a ball of 5% of the diagonal (7.7 m at 150 m) holds
+    buildings, cars and poles at once: the case of `noise.SCENE_SPAN`."""
+    rng = np.random.default_rng(seed)
+    parts = [_quad([-length / 2, -depth / 2, 0.0], [length, 0, 0], [0, depth, 0])]
+    x = -length / 2 + 5
+    while x < length / 2 - 20:
+        width, height = rng.uniform(8, 20), rng.uniform(6, 20)
+        v, f = box((width, 10.0, height))
+        parts.append((v + [x + width / 2, depth / 2 - 6, height / 2], f))
+        x += width + rng.uniform(1, 4)
+    for side in (-1, 1):
+        x = -length / 2 + 3
+        while x < length / 2 - 6:
+            v, f = box((4.5, 1.8, 1.5))
+            underside = np.all(np.isclose(v[f][:, :, 2], -0.75), axis=1)
+            parts.append((v + [x, side * 6.0, 0.75], f[~underside]))
+            x += rng.uniform(5.5, 12)
+    for px in np.arange(-length / 2 + 10, length / 2 - 10, 25.0):
+        v, f = cylinder(0.1, 6.0, 24)
+        parts.append((v + [px, -8.0, 3.0], f))
+    return concat_meshes(*parts)
+
+
 # The eval's thin-part block (fixed instances; the training family below draws other sizes).
 THIN_SHAPES = {
     "thin_plate": thin_plate,
