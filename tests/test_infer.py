@@ -246,15 +246,18 @@ def test_steps_taken_name_each_extra_step_once_and_nothing_when_none_ran():
     assert plain.steps_taken() == []
     busy = DenoiseResult(points=empty, normals=empty, outliers=np.zeros(0, bool), displacement=np.zeros(0),
                          seconds=0.0, iterations=3, thin_walled=True, split_share=0.012, rod_share=0.25,
-                         rim_share=0.031, plane_share=0.5, noise_range=(0.00125, 0.0114))
+                         rim_share=0.031, plane_share=0.5, kept_share=0.125, noise_range=(0.00125, 0.0114),
+                         scene_radius=2.75)
     steps = busy.steps_taken()
-    assert len(steps) == 6
-    assert steps[0] == "noise varies across the cloud (0.00125-0.0114): each point at its own"
-    assert steps[1].startswith("thin-walled")
-    assert "1.2% on merged thin walls" in steps[2]
-    assert "25.0% on rods" in steps[3]
-    assert "3.1% beyond thin parts' edges" in steps[4]
-    assert "50.0% by a plane filter" in steps[5]
+    assert len(steps) == 8
+    assert steps[0].startswith("read as a scene: patches of radius 2.75")
+    assert steps[1] == "noise varies across the cloud (0.00125-0.0114): each point at its own"
+    assert steps[2].startswith("thin-walled")
+    assert "1.2% on merged thin walls" in steps[3]
+    assert "25.0% on rods" in steps[4]
+    assert "3.1% beyond thin parts' edges" in steps[5]
+    assert "50.0% by a plane filter" in steps[6]
+    assert "12.5% left as they were" in steps[7]
     checked = DenoiseResult(points=empty, normals=empty, outliers=np.zeros(0, bool), displacement=np.zeros(0),
                             seconds=0.0, iterations=1, thin_walled=True, solid_share=0.625)
     assert checked.steps_taken()[0].startswith("read as thin-walled") and "62.5% whole-ball passes" in checked.steps_taken()[0]

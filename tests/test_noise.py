@@ -306,22 +306,14 @@ def test_normals_only_reads_the_noise_in_the_quietest_balls():
     assert 0.85 * 0.006 < res.noise_sigma < 1.2 * 0.006
 
 
-def _city_street(length, depth, count, noise=0.02, seed=3):
-    from cljn_addon.core.evaluation.shapes import city_street, sample_mesh
-
-    vertices, faces = city_street(length, depth)
-    rng = np.random.default_rng(seed)
-    clean, _, _ = sample_mesh(vertices, faces, count, rng)
-    return vertices, faces, clean + rng.normal(scale=noise, size=clean.shape)
-
-
 def test_a_scene_reads_its_noise_in_balls_of_a_patchs_points(monkeypatch):
     """300 m of street, 40K points, 2 cm of noise: a ball of 5% of the diagonal (15 m) holds
     buildings, cars and poles, and read them as 1.75 m of noise, which set the bound. In balls
     of 256 points (4.7 m: their structure still reads as 8.7 cm) the quietest balls read 2.2 cm."""
     import cljn_addon.core.noise as noise
+    from cljn_addon.core.evaluation.shapes import city_street, sample_noisy
 
-    _, _, noisy = _city_street(300.0, 10.0, 40_000)
+    _, _, noisy = sample_noisy(*city_street(300.0, 10.0), 40_000, 0.02, seed=3)
     radius = 0.05 * bbox_diagonal(noisy)
     est = estimate_noise(noisy, radius, seed=0)
     assert est.scene_radius < radius / noise.SCENE_SPAN

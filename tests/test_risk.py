@@ -7,7 +7,7 @@ from cljn_addon.core.evaluation.baselines import pca_projection_filter
 from cljn_addon.core.evaluation.shapes import sample_shape
 from cljn_addon.core.noise import estimate_noise
 from cljn_addon.core.patches import bbox_diagonal
-from cljn_addon.core.risk import PROBE_SIGMAS, choose_among, choose_by_risk, fitted_normals, normal_risk, probe_offsets
+from cljn_addon.core.risk import KEPT_INPUT, PROBE_SIGMAS, choose_among, choose_by_risk, fitted_normals, normal_risk, probe_offsets
 
 SIGMA = 0.01
 
@@ -152,3 +152,28 @@ def test_where_a_plane_filter_placed_the_points_their_normals_follow_the_relief(
     assert np.allclose(np.linalg.norm(fitted, axis=1), 1.0)
     assert np.all(np.einsum("ij,ij->i", fitted, given) > 0)
     assert msae(fitted, truth[rows]) < 0.5 * msae(given, truth[rows])
+
+
+def test_where_no_filter_beats_the_input_the_region_keeps_it():
+    """Rough relief (10 sigma high, finer than the points' spacing) on the left half, where each
+    plane filter's fit tilts with the relief and does worse than the input (true error 1.1-4.1
+    sigma^2 for k 10-80, the input's sigma^2), and a stand-in 'network' that lifts every point
+    by 2 sigma: there the regions keep their input rows exactly; on the flat half a plane filter
+    still wins."""
+    rng = np.random.default_rng(11)
+    xy = rng.uniform(0.0, 1.0, (20000, 2))
+    height = np.where(xy[:, 0] < 0.5, 10 * SIGMA * np.sin(2 * np.pi * xy[:, 0] / 0.008) * np.sin(2 * np.pi * xy[:, 1] / 0.008), 0.0)
+    clean = np.column_stack([xy, height])
+    noisy = clean + rng.normal(scale=SIGMA, size=clean.shape)
+    normals = np.tile([0.0, 0.0, 1.0], (len(noisy), 1))
+    amplitude, offsets = probe_offsets(normals, SIGMA, seed=12)
+    lifted = noisy + [0.0, 0.0, 2 * SIGMA]
+    positions, choice = choose_by_risk(noisy, normals, lifted, lifted + offsets, amplitude, offsets, SIGMA)
+    left, right = noisy[:, 0] < 0.4, noisy[:, 0] > 0.6
+    assert np.mean(choice[left] == KEPT_INPUT) > 0.9
+    kept = choice == KEPT_INPUT
+    assert np.array_equal(positions[kept], noisy[kept])
+    assert np.mean((choice[right] > 0) & (choice[right] < KEPT_INPUT)) > 0.9
+    error = lambda p, rows: np.mean((p[rows, 2] - clean[rows, 2]) ** 2)      # noqa: E731
+    assert error(positions, left) < 1.1 * error(noisy, left)
+    assert error(positions, right) < 0.5 * error(noisy, right)

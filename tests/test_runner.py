@@ -339,7 +339,8 @@ def test_batch_with_failures_exit_3_and_report(tmp_path, model_path, torus):
     # A solid torus: no merged thin walls to split.
     assert by_name["good.ply"]["split_share"] == 0 and not by_name["good.ply"]["thin_walled"]
     # A set pass count runs no risk check (auto only): no point placed by a plane filter.
-    assert by_name["good.ply"]["plane_share"] == 0
+    assert by_name["good.ply"]["plane_share"] == 0 and by_name["good.ply"]["kept_share"] == 0
+    assert by_name["good.ply"]["scene_radius"] is None   # an object, not a scene
     assert by_name["good.ply"]["noise_range"] is None   # one noise, and a set pass count
     assert 0 <= by_name["good.ply"]["rim_share"] <= 1
     for name in problems:

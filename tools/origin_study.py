@@ -58,7 +58,8 @@ def denoise_rows(model, shapes, level, n_points):
         sign = sign_agreement(res.normals, facing) if is_closed_and_consistent(f) else float("nan")
         scores.append((chamfer(res.points, clean) * 1e5, dist.mean() * 1e3, msae(res.normals, facing), sign))
         print(f"{level:.1%} {name}: Chamfer {scores[-1][0]:.3f} P2S {scores[-1][1]:.3f} output MSAE "
-              f"{scores[-1][2]:.4f} sign output {sign:.2%} ({time.time() - t0:.0f} s)", flush=True)
+              f"{scores[-1][2]:.4f} sign output {sign:.2%}, plane filter {res.plane_share:.1%}, input kept "
+              f"{res.kept_share:.1%} ({time.time() - t0:.0f} s)", flush=True)
     cd, p2s, out_msae, sign = np.nanmean(np.array(scores), axis=0)
     return f"Chamfer {cd:.3f}, P2S {p2s:.3f}, output MSAE {out_msae:.4f}, sign output {sign:.2%} (closed shapes)"
 
@@ -85,7 +86,8 @@ def main(argv=None):
             t0 = time.time()
             res = core.estimate_normals(noisy, model, orientation="outward", seed=0)
             ours.append(msae(res.normals, normals))
-            line = f"{percent:.1f}% {name}: normals only {ours[-1]:.4f} ({time.time() - t0:.0f} s)"
+            line = (f"{percent:.1f}% {name}: normals only {ours[-1]:.4f}, plane filter {res.plane_share:.1%}, "
+                    f"input kept {res.kept_share:.1%} ({time.time() - t0:.0f} s)")
             closed = is_closed_and_consistent(f)
             if closed:
                 signs.append(sign_agreement(res.normals, normals))

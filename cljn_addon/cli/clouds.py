@@ -288,8 +288,9 @@ class CloudCommand:
                 "thin_walled": bool(res.thin_walled), "solid_share": round(float(res.solid_share), 4),
                 "split_share": round(float(res.split_share), 4),
                 "rod_share": round(float(res.rod_share), 4), "rim_share": round(float(res.rim_share), 4),
-                "plane_share": round(float(res.plane_share), 4),
+                "plane_share": round(float(res.plane_share), 4), "kept_share": round(float(res.kept_share), 4),
                 "noise_range": None if res.noise_range is None else [float(q) for q in res.noise_range],
+                "scene_radius": float(res.scene_radius) if math.isfinite(res.scene_radius) else None,
                 "passes": passes, "stopped_by_noise": stopped,
                 "seconds": round(seconds, 3), "ran_on": ran_on}
 

@@ -28,7 +28,7 @@ from .origin import median_count_within, origin_normals
 from .patches import PatchSource, bbox_diagonal, framed_patches, from_frame
 from .refine import inflation, lrma_update
 from .rims import rim_normals as rim_outward_normals
-from .risk import choose_among, choose_by_risk, fitted_normals, probe_offsets
+from .risk import KEPT_INPUT, choose_among, choose_by_risk, fitted_normals, probe_offsets
 from .rods import RodNormals, section_radius
 from .sheets import in_faced_region, seat_on_facing_face, split_merged_walls
 
@@ -53,16 +53,22 @@ class DenoiseResult:
     stopped_early: bool = False              # auto iterations stopped: points had moved as far as the noise
     rod_share: float = 0.0                   # share of points on rods, normals from the rod's section
     plane_share: float = 0.0                 # share of points a plane filter placed (`risk`): relief kept
+    kept_share: float = 0.0                  # share of points left where they were: no filter beat the input (`risk`)
     rim_share: float = 0.0                   # share of points beyond a thin part's edge, given its rim's normal
     ran_on: str = ""                         # device and backend, e.g. "cpu (numpy)"
     # Where the noise varies across the cloud and each point was handled at its own
     # (`noise.varying_local_noise`): the 10th and 90th percentiles of the points' noise; else None.
     noise_range: tuple[float, float] | None = None
+    # Read as a scene (`noise.SCENE_SPAN`): the radius of the balls its noise was read in, which
+    # were its patches (cloud units); else nan.
+    scene_radius: float = float("nan")
 
     def steps_taken(self) -> list[str]:
         """What the engine did beyond the passes, in words, for the command line and the
         extension's report (one wording for both); empty when nothing applied."""
         steps = []
+        if np.isfinite(self.scene_radius):
+            steps.append(f"read as a scene: patches of radius {self.scene_radius:.3g}, where a ball holds one surface")
         if self.noise_range is not None:
             low, high = self.noise_range
             steps.append(f"noise varies across the cloud ({low:.3g}-{high:.3g}): each point at its own")
@@ -79,6 +85,8 @@ class DenoiseResult:
             steps.append(f"{self.rim_share:.1%} beyond thin parts' edges (normals of their rims)")
         if self.plane_share > 0:
             steps.append(f"{self.plane_share:.1%} by a plane filter where it beat the network (relief kept)")
+        if self.kept_share > 0:
+            steps.append(f"{self.kept_share:.1%} left as they were, where no filter beat the input")
         return steps
 
 
@@ -383,6 +391,8 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
     output's own planes (`risk.fitted_normals`). It costs one more run of the passes. Normals
     only checks the surface its one pass filtered in the same way, at the same noise, before
     the posterior. plane_share in the result: the share of points a plane filter placed.
+    Where neither beats the input itself, the region keeps its input (kept_share in the result;
+    the normals there are the network's).
     On a cloud read as thin-walled (own_sheet='auto') with iterations='auto', at the same low
     noise, the check is between its own-sheet pass and a solid's passes instead
     (`own_sheet_or_solid`): a sculpt's limbs and relief also fill balls with two sheets.
@@ -448,7 +458,7 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
     if bound is not None and not bound > 0:
         raise InputError(f"max displacement must be a positive number, got {max_displacement!r}")
     thin_walled = two_sheets = False
-    quiet_sigma = float("nan")
+    quiet_sigma = scene_radius = float("nan")
     if varying_noise is not None:          # given per point of `points`: keep the inliers'
         varying_noise = type(varying_noise)(*(np.asarray(field)[inliers] for field in varying_noise))
     # Normals only needs sigma (the posterior's reach) and, for its risk check, the quiet sigma
@@ -465,7 +475,7 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
             # read in (a 150 m street, 100K points, 2 cm noise: P2S 1.60 cm in, 5.67 cm out
             # with 7.7 m patches and 10.3 cm read there; 1.50 cm with 2.8 m patches and 1.98 cm).
             fraction *= estimate.scene_radius / radius0
-            radius0 = estimate.scene_radius
+            radius0 = scene_radius = estimate.scene_radius
         two_sheets = estimate.two_sheet_share >= THIN_WALLED_SHARE
         # Normals only keeps whole-ball patches on thin walls (stool at 0.6%, 50K: MSAE 0.208,
         # 0.220 with own-sheet patches).
@@ -613,8 +623,9 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
         normals = new_normals
         rods = on_rods(normals, section)
 
-    plane_share = 0.0
+    plane_share = kept_share = 0.0
     plane_placed = np.zeros(len(current), bool)   # placed by a plane filter (the risk check)
+    kept_input = np.zeros(len(current), bool)     # left at the input (the risk check)
     if risk_check:
         # The same passes (same seed, pass count, radius, sigma, bound) on the input nudged
         # along the normals give the network's divergence for the risk estimate. Normals only:
@@ -636,16 +647,19 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
         chosen, choice = choose_by_risk(original[inliers], normals, current if move_points else surface,
                                         probe.points, amplitude, offsets, risk_sigma, seed=seed, cancel=cancel)
         chosen = clamp_displacement(chosen, original[inliers], point_bound)
-        # There the normal is the output's own plane; a rod's keeps its section's.
-        planar = np.flatnonzero((choice > 0) & ~rods)
+        plane_placed = (choice > 0) & (choice != KEPT_INPUT)
+        # There the normal is the output's own plane; a rod's keeps its section's. Where the
+        # input was kept, the network's normal: it was read from the same input patches.
+        planar = np.flatnonzero(plane_placed & ~rods)
         if len(planar):
             normals[planar] = fitted_normals(chosen, planar, normals, float(np.median(risk_sigma)), seed=seed)
         if move_points:
             current = chosen
         else:
             surface = chosen
-        plane_placed = choice > 0
         plane_share = float(np.mean(plane_placed))
+        kept_input = choice == KEPT_INPUT
+        kept_share = float(np.mean(kept_input))
     if not move_points:
         report(0.95, "normals of the surface each point came from")
         normals = origin_normals(current, surface, normals, sigma if local is None else local.sigma,
@@ -654,6 +668,8 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
     if move_points and split_walls:
         report(0.9 if check_solid else 0.95, "looking for merged thin walls")
         split, side = split_merged_walls(original[inliers], current, normals, seed=seed, cancel=cancel)
+        side[kept_input] = 0               # the input kept is no merged wall: it stays
+        split[kept_input] = current[kept_input]
         if side.any():
             current = clamp_displacement(split, original[inliers], point_bound)
     solid_share = 0.0
@@ -672,6 +688,7 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
     out_points = given.copy()          # unmoved points (outliers, normals only) bit-identical
     if move_points:
         out_points[inliers] = current + centre
+        out_points[inliers[kept_input]] = given[inliers[kept_input]]   # bit-identical, not re-centred
     all_normals = np.empty_like(original)
     all_normals[inliers] = normals
     if outliers.any():
@@ -696,12 +713,12 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
         # Where a plane filter placed them, only inside a region turned as a whole (a thin tip);
         # scattered turned points there are relief on one surface (column_head at 0.6%, where
         # 98% of the points orientation turned by their input side were placed so: all seated,
-        # Chamfer 4.09 -> 4.16).
+        # Chamfer 4.09 -> 4.16). Where the input was kept, nothing was filtered to seat.
         row_of = np.full(len(original), -1)
         row_of[inliers] = np.arange(len(inliers))
         rows = row_of[faced.idx]
         keep = np.flatnonzero(rows >= 0)
-        keep = keep[side[rows[keep]] == 0]
+        keep = keep[(side[rows[keep]] == 0) & ~kept_input[rows[keep]]]
         on_plane = np.flatnonzero(plane_placed[rows[keep]])
         if len(on_plane):
             turned = np.zeros(len(current), bool)
@@ -737,6 +754,7 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
                          stopped_early=stopped_early, split_share=float(np.mean(side != 0)) if len(side) else 0.0,
                          wall_side=wall_side,
                          rod_share=float(np.mean(rods)) if len(rods) else 0.0, plane_share=plane_share,
+                         kept_share=kept_share, scene_radius=scene_radius,
                          rim_share=rim_share,
                          noise_range=None if local is None else tuple(float(q) for q in
                                                                     np.quantile(local.sigma, NOISE_RANGE_QUANTILES)))

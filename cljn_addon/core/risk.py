@@ -1,5 +1,5 @@
-"""Per region, the network's result or a classic plane filter's, whichever Stein's unbiased
-risk estimate (SURE) says lies nearer the surface.
+"""Per region, the network's result, a classic plane filter's or the input itself, whichever
+Stein's unbiased risk estimate (SURE) says lies nearer the surface.
 
 For Gaussian noise of sigma along a point's normal n, the squared error of any filter f along
 n is estimated without the truth: (n.(f(y) - y))^2 - sigma^2 + 2 sigma^2 d(n.f)/d(n.y). The
@@ -9,7 +9,8 @@ normal by a random amount (Monte Carlo SURE). Each estimate is noisy; averaged o
 noise's own scale (column_head at 0.6%) the network erodes and a small plane filter keeps it;
 on smooth parts and sharp edges the network stays. Where a plane filter placed the points, the
 normal is the plane fitted to the output there (`fitted_normals`): the network's normal is the
-one of the surface it eroded.
+one of the surface it eroded. Where no filter beats the input (its risk is sigma^2: a sparse
+scene whose patches and neighbourhoods span several surfaces), the region keeps its input.
 """
 from __future__ import annotations
 
@@ -21,6 +22,7 @@ from .origin import median_count_within
 from .planes import local_planes, pca_projection_filter
 
 PLANE_NEIGHBOURS = (10, 20, 40, 80)   # the plane filters offered beside the network
+KEPT_INPUT = len(PLANE_NEIGHBOURS) + 1   # the choice that keeps the input, after the plane filters
 # The nudge's scale, in noise sigmas. Nearest-neighbour sets switch as points move, so a
 # finite nudge overstates a plane filter's divergence (unit square at 1%, 20K points, k 20:
 # risk 0.12 sigma^2 over the truth at 0.5 sigma, 0.014 at 0.1): the choice leans to the network,
@@ -72,7 +74,8 @@ def regional_choice(points, risks, seed=0, cancel=None):
 
 def choose_by_risk(noisy, normals, network, network_probe, amplitude, offsets, sigma, seed=0, cancel=None):
     """(positions (N, 3), choice (N,): 0 the network's, i the i-th plane filter's of
-    `PLANE_NEIGHBOURS`). amplitude, offsets: the nudge (`probe_offsets`) network_probe ran on."""
+    `PLANE_NEIGHBOURS`, `KEPT_INPUT` the input's). amplitude, offsets: the nudge
+    (`probe_offsets`) network_probe ran on."""
     probe = noisy + offsets
 
     def candidates():
@@ -82,6 +85,8 @@ def choose_by_risk(noisy, normals, network, network_probe, amplitude, offsets, s
             if cancel is not None and cancel.is_set():
                 raise Cancelled("cancelled")
             yield pca_projection_filter(noisy, k), pca_projection_filter(probe, k)
+        # Never worse than the input where the risk can tell: f(y) = y, its risk sigma^2.
+        yield noisy, probe
 
     return choose_among(noisy, normals, candidates(), amplitude, sigma, seed=seed, cancel=cancel)
 

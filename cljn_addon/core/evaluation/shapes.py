@@ -31,6 +31,14 @@ def sample_mesh(vertices, faces, n, rng):
     return points, normals[face], face
 
 
+def sample_noisy(vertices, faces, n, noise, seed):
+    """(clean (n, 3), face ids (n,), noisy (n, 3)): `sample_mesh` and Gaussian noise of sigma
+    `noise` in every coordinate, both from one generator seeded with `seed`."""
+    rng = np.random.default_rng(seed)
+    clean, _, face = sample_mesh(vertices, faces, n, rng)
+    return clean, face, clean + rng.normal(scale=noise, size=clean.shape)
+
+
 def normalise_unit_diagonal(vertices):
     """Centre on the bbox centre and scale so the bbox diagonal is 1."""
     lo, hi = vertices.min(axis=0), vertices.max(axis=0)
