@@ -313,7 +313,7 @@ def test_a_scene_reads_its_noise_in_balls_of_a_patchs_points(monkeypatch):
     import cljn_addon.core.noise as noise
     from cljn_addon.core.evaluation.shapes import city_street, sample_noisy
 
-    _, _, noisy = sample_noisy(*city_street(300.0, 10.0), 40_000, 0.02, seed=3)
+    _, _, _, noisy = sample_noisy(*city_street(300.0, 10.0), 40_000, 0.02, seed=3)
     radius = 0.05 * bbox_diagonal(noisy)
     est = estimate_noise(noisy, radius, seed=0)
     assert est.scene_radius < radius / noise.SCENE_SPAN
@@ -336,3 +336,19 @@ def test_a_dense_object_is_not_read_as_a_scene(monkeypatch):
     monkeypatch.setattr(noise, "SCENE_SPAN", np.inf)
     unchecked = estimate_noise(noisy, 0.05, seed=0)
     assert np.isnan(est.scene_radius) and est.sigma == unchecked.sigma and 0.9 < est.sigma / 0.01 < 1.15
+
+
+def test_a_dense_object_whose_small_balls_read_the_noise_low_is_not_a_scene(monkeypatch):
+    """200K points on a star prism at 2%: its 256-point balls are ~1.1 sigma wide, where the
+    quadric follows the noise (0.43x sigma read, under half the patch balls' 1.1x). Read as a
+    scene it kept 0.3x its noise and patches a sigma wide; a scene's small balls are tens of
+    their sigmas wide (`SCENE_BALL_SIGMAS`), so the patch balls' reading stands."""
+    import cljn_addon.core.noise as noise
+
+    noisy, _, _ = sample_shape("star_prism", 200_000, noise=0.02, seed=0)
+    radius = 0.05 * bbox_diagonal(noisy)
+    est = estimate_noise(noisy, radius, seed=0)
+    assert np.isnan(est.scene_radius) and 0.9 < est.sigma / 0.02 < 1.25
+    monkeypatch.setattr(noise, "SCENE_BALL_SIGMAS", 0.0)
+    unchecked = estimate_noise(noisy, radius, seed=0)
+    assert unchecked.scene_radius < 2.0 * 0.02 and unchecked.sigma < 0.5 * 0.02

@@ -12,12 +12,13 @@ from cljn_addon.core.risk import KEPT_INPUT, PROBE_SIGMAS, choose_among, choose_
 SIGMA = 0.01
 
 
-def relief_plane(n, seed, relief=True, relief_share=0.5):
-    """A unit square at z = 0 whose left part (relief_share of it) carries bumps at the noise's
-    own scale (amplitude 1.5 sigma, 0.1 across); noisy points, clean heights, normals +z."""
+def relief_plane(n, seed, relief=True, relief_share=0.5, amplitude=1.5 * SIGMA, wavelength=0.1):
+    """A unit square at z = 0 whose left part (relief_share of it) carries bumps (amplitude 1.5
+    sigma, 0.1 across by default: the noise's own scale); noisy points, clean heights, normals +z."""
     rng = np.random.default_rng(seed)
     xy = rng.uniform(0.0, 1.0, (n, 2))
-    height = np.where(xy[:, 0] < relief_share, 1.5 * SIGMA * np.sin(2 * np.pi * xy[:, 0] / 0.1) * np.sin(2 * np.pi * xy[:, 1] / 0.1), 0.0)
+    bumps = amplitude * np.sin(2 * np.pi * xy[:, 0] / wavelength) * np.sin(2 * np.pi * xy[:, 1] / wavelength)
+    height = np.where(xy[:, 0] < relief_share, bumps, 0.0)
     if not relief:
         height[:] = 0.0
     clean = np.column_stack([xy, height])
@@ -160,12 +161,7 @@ def test_where_no_filter_beats_the_input_the_region_keeps_it():
     sigma^2 for k 10-80, the input's sigma^2), and a stand-in 'network' that lifts every point
     by 2 sigma: there the regions keep their input rows exactly; on the flat half a plane filter
     still wins."""
-    rng = np.random.default_rng(11)
-    xy = rng.uniform(0.0, 1.0, (20000, 2))
-    height = np.where(xy[:, 0] < 0.5, 10 * SIGMA * np.sin(2 * np.pi * xy[:, 0] / 0.008) * np.sin(2 * np.pi * xy[:, 1] / 0.008), 0.0)
-    clean = np.column_stack([xy, height])
-    noisy = clean + rng.normal(scale=SIGMA, size=clean.shape)
-    normals = np.tile([0.0, 0.0, 1.0], (len(noisy), 1))
+    noisy, clean, normals = relief_plane(20000, seed=11, amplitude=10 * SIGMA, wavelength=0.008)
     amplitude, offsets = probe_offsets(normals, SIGMA, seed=12)
     lifted = noisy + [0.0, 0.0, 2 * SIGMA]
     positions, choice = choose_by_risk(noisy, normals, lifted, lifted + offsets, amplitude, offsets, SIGMA)

@@ -277,7 +277,7 @@ def test_a_street_scene_keeps_the_wall_behind_a_parked_car(shipped):
 
     vertices, faces = street_scene()
     noise = 0.02                                                  # 2 cm, in metres
-    clean, face, noisy = sample_noisy(vertices, faces, 25000, noise, seed=3)
+    clean, _, face, noisy = sample_noisy(vertices, faces, 25000, noise, seed=3)
     res = denoise(noisy, shipped, iterations="auto")
     assert 0.8 * noise < res.noise_sigma < 1.3 * noise
     assert res.displacement.max() <= res.displacement_bound * (1 + 1e-9)
@@ -526,7 +526,7 @@ def test_a_sparse_street_300_m_long_is_not_wrecked(shipped):
     from cljn_addon.core.evaluation.shapes import city_street, sample_noisy
 
     vertices, faces = city_street(300.0, 10.0)
-    _, _, noisy = sample_noisy(vertices, faces, 40_000, 0.02, seed=3)
+    _, _, _, noisy = sample_noisy(vertices, faces, 40_000, 0.02, seed=3)
     res = denoise(noisy, shipped, iterations="auto")
     assert 0.015 < res.noise_sigma < 0.03
     assert np.linalg.norm(res.points - noisy, axis=1).max() < 3.5 * 0.02

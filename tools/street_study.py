@@ -42,7 +42,7 @@ def main(argv=None):
     ap.add_argument("--city", action="store_true", help="the longer street of buildings, cars and poles")
     args = ap.parse_args(argv)
     vertices, faces = (city_street if args.city else street_scene)(args.length, args.depth)
-    clean, face, noisy = sample_noisy(vertices, faces, args.points, args.noise, args.seed)
+    clean, _, face, noisy = sample_noisy(vertices, faces, args.points, args.noise, args.seed)
     surface = MeshDistance(vertices, faces)
     wall_y = vertices[faces[2, 0], 1]
     # The wall behind the parked car (faces 2 and 3 of `street_scene`); the city has none.

@@ -41,6 +41,12 @@ QUIET_SCALE = 1.12
 # clouds do not reach the span at all.
 SCENE_SPAN = 2.0
 SCENE_RATIO = 2.0
+# A dense object's small balls are only a few sigmas wide, and there the quadric follows the
+# noise and reads it low (a sphere of 400K points at 2%: balls 1.1 sigma wide read 0.42x sigma,
+# 0.6x at 1.4 sigma, 0.91x at 3.7), so the patch balls' reading looked like structure and the
+# object was read as a scene with a third of its noise. A scene's small balls are wide against
+# the noise they read (streets of 40K-1M points: 27-122x); objects of 200K-1M points 2.3-2.8x.
+SCENE_BALL_SIGMAS = 8.0
 SURFACE_NEIGHBOURS = 12        # neighbours along the surface each point is compared with
 SURFACE_REACH_SIGMAS = 5.0     # how far off the surface (in pilot sigmas) those neighbours are looked for
 SURFACE_CANDIDATES = 1000      # nearest points searched for them
@@ -118,11 +124,11 @@ def estimate_noise(points, radius, sample=NOISE_SAMPLE, seed=0) -> NoiseEstimate
 
 def _estimate_at_scale(pts, radius, sample, rng):
     """`_estimate` in balls of `radius`, or in balls of `NOISE_PATCH_POINTS` points where the
-    cloud is a scene (`SCENE_SPAN`, `SCENE_RATIO`); last, those balls' radius on a scene, else nan."""
+    cloud is a scene (`SCENE_SPAN`, `SCENE_RATIO`, `SCENE_BALL_SIGMAS`); last, those balls' radius on a scene, else nan."""
     *estimate, local_radius = _estimate(pts, radius, sample, rng)
     if local_radius * SCENE_SPAN < radius:
         *local, _ = _estimate(pts, local_radius, sample, rng)
-        if local[0] > 0 and estimate[0] > SCENE_RATIO * local[0]:
+        if local[0] > 0 and estimate[0] > SCENE_RATIO * local[0] and local_radius >= SCENE_BALL_SIGMAS * local[0]:
             # Where the scene is sparse those balls span metres and hold structure too (300 m
             # of street, 40K points: 8.7 cm read for 2 cm); its quietest balls (open ground, a
             # wall) hold one surface each, and read the noise (2.2 cm).

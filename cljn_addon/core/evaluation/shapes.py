@@ -32,11 +32,11 @@ def sample_mesh(vertices, faces, n, rng):
 
 
 def sample_noisy(vertices, faces, n, noise, seed):
-    """(clean (n, 3), face ids (n,), noisy (n, 3)): `sample_mesh` and Gaussian noise of sigma
-    `noise` in every coordinate, both from one generator seeded with `seed`."""
+    """(clean (n, 3), clean normals (n, 3), face ids (n,), noisy (n, 3)): `sample_mesh` and
+    Gaussian noise of sigma `noise` in every coordinate, both from one generator seeded `seed`."""
     rng = np.random.default_rng(seed)
-    clean, _, face = sample_mesh(vertices, faces, n, rng)
-    return clean, face, clean + rng.normal(scale=noise, size=clean.shape)
+    clean, normals, face = sample_mesh(vertices, faces, n, rng)
+    return clean, normals, face, clean + rng.normal(scale=noise, size=clean.shape)
 
 
 def normalise_unit_diagonal(vertices):
@@ -189,10 +189,7 @@ def sample_shape(name, n, noise=0.0, seed=0):
 
     noise is the Gaussian sigma as a fraction of the (unit) bbox diagonal.
     """
-    rng = np.random.default_rng(seed)
-    v, f = shape_mesh(name)
-    clean, normals, _ = sample_mesh(v, f, n, rng)
-    noisy = clean + rng.normal(scale=noise, size=clean.shape) if noise > 0 else clean.copy()
+    clean, normals, _, noisy = sample_noisy(*shape_mesh(name), n, noise, seed)
     return noisy, clean, normals
 
 
