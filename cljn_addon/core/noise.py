@@ -44,7 +44,7 @@ SCENE_RATIO = 2.0
 # A dense object's small balls are only a few sigmas wide, and there the quadric follows the
 # noise and reads it low (a sphere of 400K points at 2%: balls 1.1 sigma wide read 0.42x sigma,
 # 0.6x at 1.4 sigma, 0.91x at 3.7), so the patch balls' reading looked like structure and the
-# object was read as a scene with a third of its noise. A scene's small balls are wide against
+# object was read as a scene with 0.17-0.61x its noise. A scene's small balls are wide against
 # the noise they read (streets of 40K-1M points: 27-122x); objects of 200K-1M points 2.3-2.8x.
 SCENE_BALL_SIGMAS = 8.0
 SURFACE_NEIGHBOURS = 12        # neighbours along the surface each point is compared with
