@@ -261,3 +261,35 @@ def test_steps_taken_name_each_extra_step_once_and_nothing_when_none_ran():
     checked = DenoiseResult(points=empty, normals=empty, outliers=np.zeros(0, bool), displacement=np.zeros(0),
                             seconds=0.0, iterations=1, thin_walled=True, solid_share=0.625)
     assert checked.steps_taken()[0].startswith("read as thin-walled") and "62.5% whole-ball passes" in checked.steps_taken()[0]
+
+
+@pytest.mark.parametrize("mixed_precision", [True, False])
+def test_the_cpu_runs_the_network_a_cache_s_worth_of_patches_at_a_time(tiny, monkeypatch, mixed_precision):
+    import torch
+
+    from cljn_addon.core import infer
+    from cljn_addon.core import model as model_module
+    from cljn_addon.core.device import autocast
+
+    calls = []
+    build_net = model_module.inference_net
+
+    def counting_net(model):
+        net = build_net(model)
+
+        def run(patches):
+            calls.append(len(patches))
+            return net(patches)
+        return run
+    monkeypatch.setattr(model_module, "inference_net", counting_net)
+    predict, _, _ = infer.predictor(tiny, "cpu", mixed_precision=mixed_precision)
+    step = infer.CPU_NETWORK_ROWS // tiny.config.points_per_patch
+    patches = np.random.default_rng(0).normal(scale=0.3, size=(2 * step + 5, tiny.config.points_per_patch, 3))
+    displacement, normals = predict(patches.astype(np.float32))
+    assert calls == [step, step, 5]
+    # The same outputs, in the same order, as one call on the whole batch.
+    with torch.inference_mode(), autocast(torch.device("cpu"), enabled=mixed_precision):
+        whole = build_net(tiny)(torch.from_numpy(patches.astype(np.float32)))
+    tolerance = 1e-2 if mixed_precision else 1e-5
+    np.testing.assert_allclose(displacement, whole[0].float().numpy(), atol=tolerance)
+    np.testing.assert_allclose(normals, whole[1].float().numpy(), atol=tolerance)
