@@ -96,6 +96,11 @@ def test_import_denoise_export_keeps_fields_and_georeferencing(bx):
         moved = np.stack([c.x, c.y, c.z], axis=1)
         expect = bx.world_points(obj).astype(np.float64) + np.asarray(obj[las_io.ORIGIN])
         assert np.abs(moved - expect).max() < 0.0006
+        # The file's scale or a power of ten finer (moves too small for its grid); Keep File Scale: its own.
+        assert any(np.allclose(c.header.scales, a.header.scales / 10 ** k) for k in range(4)), c.header.scales
+        kept = bx.tmp / f"kept{fmt}.laz"
+        assert bpy.ops.cljn.export_las(filepath=str(kept), keep_scale=True) == {"FINISHED"}
+        assert np.array_equal(laspy.read(str(kept)).header.scales, a.header.scales)
         assert not np.array_equal(a.points.array["Z"], c.points.array["Z"])
         normals = np.stack([c["NormalX"], c["NormalY"], c["NormalZ"]], axis=1)
         assert np.allclose(normals, bx.attribute(obj, "cljn_normal"), atol=1e-5)

@@ -140,6 +140,81 @@ def test_writing_streams_in_chunks(tmp_path, monkeypatch):
     assert (tmp_path / "one.las").read_bytes() == (tmp_path / "many.las").read_bytes()
 
 
+def _moved_copy(cloud, size, seed=3, still=100):
+    """cloud's positions moved by ~size (random directions), the first `still` not moved."""
+    rng = np.random.default_rng(seed)
+    steps = rng.normal(size=cloud.points.shape)
+    moved = cloud.points + size * steps / np.linalg.norm(steps, axis=1, keepdims=True)
+    moved[:still] = cloud.points[:still]
+    return moved
+
+
+@pytest.mark.parametrize("suffix", [".las", ".laz"])
+def test_a_grid_too_coarse_for_the_moves_is_written_finer_and_unmoved_points_stay_exact(tmp_path, suffix):
+    """1 cm file, 3 mm moves: at the file's scale most moves would round back to the input
+    (the plane.laz case). Written at 1 mm: each move kept to 0.5 mm a coordinate, unmoved
+    points at 10x their input integers, every other byte and the offsets as they were;
+    --keep-las-scale (keep_las_scale) writes the file's own grid."""
+    src = make_las(tmp_path / f"in{suffix}", _cloud(900), fmt=6, scale=0.01)
+    cloud = pointio.read_points(src, with_fields=False)
+    moved = _moved_copy(cloud, 0.003)
+    result = pointio.PointCloud(moved, None, source=cloud.source, origin=cloud.origin)
+    a = laspy.read(str(src))
+
+    on_file_grid = tmp_path / f"kept{suffix}"
+    pointio.write_points(on_file_grid, result, keep_las_scale=True)
+    kept = laspy.read(str(on_file_grid))
+    assert np.array_equal(kept.header.scales, a.header.scales)
+    lost = np.all(np.stack([a.points.array[x] == kept.points.array[x] for x in "XYZ"]), axis=0)
+    assert lost[100:].mean() > 0.4, "the case under test: the 1 cm grid rounds many moves back"
+
+    out = tmp_path / f"out{suffix}"
+    pointio.write_points(out, result)
+    b = laspy.read(str(out))
+    assert np.allclose(b.header.scales, 0.001) and np.array_equal(b.header.offsets, a.header.offsets)
+    assert lasio.file_scales(out) == (0.001, 0.001, 0.001)
+    assert _fields_equal(a, b)
+    for axis in "XYZ":
+        assert np.array_equal(np.asarray(b.points.array[axis][:100], np.int64),
+                              10 * np.asarray(a.points.array[axis][:100], np.int64)), axis
+    got = np.stack([b.x, b.y, b.z], axis=1)
+    assert np.abs(got - (moved + cloud.origin)).max() <= 0.0005 + 1e-9
+    kept_share = np.linalg.norm(got - cloud.true_points(), axis=1)[100:] / 0.003
+    assert np.median(kept_share) > 0.8, np.median(kept_share)
+
+
+def test_how_much_finer_follows_the_moves_within_int32(tmp_path):
+    """Decades finer: none where the grid holds the moves, one per tenfold smaller move, at
+    most MAX_FINER_DECADES; fewer where the finer integers would leave int32; none when no
+    position left the grid (normals only)."""
+    src = make_las(tmp_path / "in.las", _cloud(600), fmt=1, scale=0.01)
+    cloud = pointio.read_points(src, with_fields=False)
+    decades = {size: lasio.finer_decades(pointio.PointCloud(_moved_copy(cloud, size), None, source=cloud.source,
+                                                            origin=cloud.origin), cloud.source)
+               for size in (0.05, 0.02, 0.003, 0.0003, 1e-6)}
+    assert decades == {0.05: 0, 0.02: 0, 0.003: 1, 0.0003: 2, 1e-6: lasio.MAX_FINER_DECADES}
+    assert lasio.finer_decades(cloud, cloud.source) == 0
+
+    # 20,000 km from the offset at 1 cm: 2e9 units; ten times that leaves int32.
+    far = make_las(tmp_path / "far.las", _cloud(300) + [2.0e7, 0.0, 0.0], fmt=1, offset=np.zeros(3), scale=0.01)
+    cloud = pointio.read_points(far, with_fields=False)
+    moved = pointio.PointCloud(_moved_copy(cloud, 0.003), None, source=cloud.source, origin=cloud.origin)
+    assert lasio.finer_decades(moved, cloud.source) == 0
+    pointio.write_points(tmp_path / "far_out.las", moved)
+    assert lasio.file_scales(tmp_path / "far_out.las") == (0.01, 0.01, 0.01)
+
+
+def test_a_new_file_from_another_format_keeps_its_own_scale(tmp_path):
+    """A cloud from .ply/.npy gets 1e-8 of its extent as scale, never refined further."""
+    pts = _cloud(400) + GEO_OFFSET
+    out = tmp_path / "new.las"
+    pointio.write_points(out, pointio.PointCloud(pts, None))
+    scale = lasio.file_scales(out)[0]
+    assert scale == float(f"{scale:.0e}") and 1e-8 <= scale <= 1e-7, scale
+    b = laspy.read(str(out))
+    assert np.abs(np.stack([b.x, b.y, b.z], axis=1) - pts).max() <= scale
+
+
 def test_las_fields_go_to_other_formats_and_back(tmp_path):
     points = _cloud(600)
     src = make_las(tmp_path / "in.las", points, fmt=7)
@@ -185,6 +260,25 @@ def test_command_line_denoise_las_to_las_and_to_ply(tmp_path, model_path):
     ply = pointio.read_points(tmp_path / "clean.ply")
     assert np.array_equal(ply.extra["intensity"], np.asarray(a.intensity))
     assert np.allclose(ply.points, np.stack([b.x, b.y, b.z], axis=1), atol=6e-4)
+
+
+def test_command_line_reports_the_written_scale_and_keeps_the_file_s_on_request(tmp_path, model_path):
+    """The report says the scale written; the note is printed exactly when it is finer than the
+    input's; --keep-las-scale writes the input's."""
+    import json
+
+    src = make_las(tmp_path / "coarse.laz", _cloud(900), fmt=6, scale=0.01)
+    for flags, name in (([], "auto.laz"), (["--keep-las-scale"], "kept.laz")):
+        proc = cli("denoise", src, "-o", tmp_path / name, "--model", model_path, "--iterations", "1",
+                   "--no-progress", "--report", tmp_path / "r.json", *flags)
+        assert proc.returncode == 0, proc.stderr
+        written = lasio.file_scales(tmp_path / name)
+        assert json.loads((tmp_path / "r.json").read_text())["inputs"][0]["las_scale"] == list(written)
+        assert ("finer than the input's 0.01" in proc.stdout) == (written[0] < 0.01), proc.stdout
+        if flags:
+            assert written == (0.01, 0.01, 0.01)
+        else:
+            assert written[0] in (0.01, 0.001, 0.0001, 0.00001)
 
 
 def test_georeferenced_scan_denoises_like_the_same_scan_at_the_origin(tmp_path, model_path):
@@ -328,7 +422,12 @@ def test_real_laz_scan_with_the_shipped_model(tmp_path):
     a, b = laspy.read(str(src)), laspy.read(str(out))
     assert _fields_equal(a, b)
     move = np.linalg.norm(np.stack([b.x - a.x, b.y - a.y, b.z - a.z], axis=1), axis=1)
-    assert 0 < np.count_nonzero(move) and move.max() <= report["displacement_bound"] + 0.01 * np.sqrt(3) / 2
+    assert 0 < np.count_nonzero(move) and move.max() <= report["displacement_bound"] + 0.001 * np.sqrt(3) / 2
+    # Moves of ~3 mm on its 1 cm grid: written at 1 mm, so the file holds the cleaning (at 1 cm
+    # 81% of the points rounded back to the input).
+    assert report["las_scale"] == [0.001] * 3 and "finer than the input's 0.01" in proc.stdout, proc.stdout
+    assert np.count_nonzero(move) > 0.8 * len(move)             # 89% (1 cm: 19%)
+    assert abs(move.mean() - report["mean_displacement"]) < 0.1 * report["mean_displacement"]
 
 
 def test_evlrs_are_kept(tmp_path):

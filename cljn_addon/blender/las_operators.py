@@ -7,6 +7,7 @@ from bpy.props import BoolProperty, StringProperty
 from bpy_extras.io_utils import ExportHelper, ImportHelper
 
 from ..core.errors import InputError
+from ..core.formats import las
 from . import las_io, object_io
 
 
@@ -44,6 +45,11 @@ class CLJN_OT_export_las(bpy.types.Operator, ExportHelper):
     filename_ext = ".laz"
     check_extension = None          # .las or .laz, as typed
     filter_glob: StringProperty(default="*.las;*.laz", options={"HIDDEN"})
+    keep_scale: BoolProperty(
+        name="Keep File Scale", default=False,
+        description="Write at the imported file's scale even where its grid is too coarse for "
+                    "the cleaning (moves of a few mm on a 1 cm grid round back); off: a scale "
+                    "10-1000x finer then, every imported coordinate still exact")
 
     @classmethod
     def poll(cls, context):
@@ -59,13 +65,14 @@ class CLJN_OT_export_las(bpy.types.Operator, ExportHelper):
             self.report({"ERROR"}, f"{path}: the file name must end in .las or .laz")
             return {"CANCELLED"}
         try:
-            warnings = las_io.export_las(context.active_object, path)
+            warnings = las_io.export_las(context.active_object, path, keep_scale=self.keep_scale)
+            scale = max(las.file_scales(path))
         except InputError as exc:
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
         for warning in warnings:
             self.report({"WARNING"}, warning)
-        self.report({"INFO"}, f"Exported '{context.active_object.name}' to {path}")
+        self.report({"INFO"}, f"Exported '{context.active_object.name}' to {path} (scale {scale:g})")
         return {"FINISHED"}
 
 

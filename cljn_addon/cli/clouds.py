@@ -51,6 +51,11 @@ def options_from_args(args) -> DenoiseOptions:
         noise_sigma=getattr(args, "noise", None), solid=getattr(args, "solid", False))
 
 
+def _scales_text(scales) -> str:
+    """0.001, or 0.001/0.001/0.0001 when the axes differ."""
+    return "/".join(f"{v:g}" for v in scales) if len(set(scales)) > 1 else f"{scales[0]:g}"
+
+
 def _same_file(a: Path, b: Path) -> bool:
     try:
         if a.exists() and b.exists():
@@ -332,12 +337,28 @@ class CloudCommand:
         if self.args.in_place:
             self._backup(job.output)
         job.output.parent.mkdir(parents=True, exist_ok=True)
-        written = pointio.write_points(job.output, result, outliers=res.outliers)
+        written = pointio.write_points(job.output, result, outliers=res.outliers,
+                                       keep_las_scale=self.args.keep_las_scale)
         job.report["output"] = str(job.output)
         if len(written) > 1:
             job.report["files"] = [str(p) for p in written]
         job.report.update(self._stats(str(job.input), res, job.output))
+        if job.output.suffix.lower() in LAS_SUFFIXES:
+            self._note_las_scale(job, cloud)
         self._keep_preview(job, job.input.stem, np.asarray(cloud.points, np.float64), res)
+
+    def _note_las_scale(self, job, cloud):
+        """Report the scale a LAS/LAZ was written at; say so when it is finer than the input's."""
+        from ..core.formats.las import LasSource, file_scales
+
+        written = file_scales(job.output)
+        job.report["las_scale"] = list(written)
+        if isinstance(cloud.source, LasSource):
+            given = tuple(float(v) for v in cloud.source.header.scales)
+            if written != given:
+                out(f"{job.output}: written at scale {_scales_text(written)}, finer than the "
+                    f"input's {_scales_text(given)}, whose grid would round most moves back "
+                    "(--keep-las-scale keeps it)")
 
     def _run_points_to_blend(self, job):
         """A new .blend holding the cloud as the extension's point cloud (LAS/LAZ: as File >

@@ -26,8 +26,9 @@ formats (by extension):
   .npy    in: (N,3), (N,6) x y z nx ny nz, or a structured array with x y z fields
           out: (N,6) x y z nx ny nz in the input's float type
   .las .laz  in/out (laspy + lazrs): the input's point format, header (scale, offset, CRS and
-          other VLRs/EVLRs) and every field in order; positions at the file's scale (unmoved
-          points keep their exact integers); normals as extra bytes NormalX NormalY NormalZ
+          other VLRs/EVLRs) and every field in order; positions at the file's scale, or
+          10-1000x finer where that grid would round the cleaning away (--keep-las-scale:
+          never; unmoved points keep their exact coordinates); normals as extra bytes NormalX NormalY NormalZ
           (float32) and cljn_outlier (uint8, 1 = flagged). Streamed in chunks. From another
           format: LAS 1.4 point format 6 (7 with red/green/blue).
   .blend  in: every point-cloud object (or --objects NAME...) is processed; other objects
@@ -100,6 +101,11 @@ def _add_cloud_options(p: argparse.ArgumentParser, normals_only: bool):
                            "NAME.bak otherwise)")
     out.add_argument("--format", choices=[s[1:] for s in ALL_SUFFIXES],
                      help="with --out-dir: output format (default: the input's)")
+    out.add_argument("--keep-las-scale", action="store_true",
+                     help="LAS/LAZ out of LAS/LAZ: keep the input's scale even where its grid is "
+                          "too coarse for the cleaning (moves of a few mm on a 1 cm grid round "
+                          "back to the input). Default: then a scale 10-1000x finer, every input "
+                          "coordinate still exact (a LAZ grows by ~40%% a decade)")
     out.add_argument("--report", metavar="FILE.json",
                      help="write a machine-readable summary (per input: points, outliers, "
                           "seconds, output path, status)")

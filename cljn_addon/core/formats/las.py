@@ -3,8 +3,10 @@
 Reading keeps a `LasSource` on the returned `PointCloud`: the input's header (version, point
 format, scale, offset, VLRs incl. the CRS, EVLRs) and where its point records are. Writing a
 cloud that has one streams the records again, chunk by chunk, and changes only:
-- X, Y, Z: the output positions at the file's own scale and offset. Positions that did not move
-  (outliers, `normals`) quantise back to bit-identical integers;
+- X, Y, Z: the output positions at the file's offset and scale, or a scale a power of ten finer
+  where the file's grid would round the cleaning away (`finer_decades`); positions that did not
+  move (outliers, `normals`) come back to the same coordinates (the same integers at the file's
+  own scale, times 10^k at a finer one);
 - the extra-bytes dimensions NORMAL_DIMS (float32) and OUTLIER_DIM (uint8, 1 = flagged), added
   after the input's own dimensions (overwritten when the input already has them).
 Every other byte of every record is copied, so intensity, returns, classification, RGB, GPS
@@ -32,6 +34,8 @@ LAS_SUFFIXES = (".las", ".laz")
 NORMAL_DIMS = ("NormalX", "NormalY", "NormalZ")   # PDAL's names; float32 extra bytes
 OUTLIER_DIM = "cljn_outlier"                       # uint8 extra bytes, 1 = flagged outlier
 CHUNK_POINTS = 1_000_000
+MAX_FINER_DECADES = 3          # write at most 1000x finer than the input's scale
+MOVE_PER_STEP = 2.0            # grid step <= half the median move: rounding ~13% of a move
 _POSITION_BYTES = 12                               # X, Y, Z int32: the first 12 bytes of a record
 _INT32 = np.iinfo(np.int32)
 
@@ -188,12 +192,13 @@ def _output_header(header, with_normals, with_outliers):
     return out
 
 
-def quantise(path, positions, header, origin=None) -> np.ndarray:
+def quantise(path, positions, header, origin=None, mid=None) -> np.ndarray:
     """(m, 3) int32 record coordinates of positions (relative to `origin`, default: true
     coordinates) at the header's scale and offset; InputError (naming path) when a position
-    does not fit the file's integer range. On the file's grid the integers come from the
-    relative positions alone (exact, whatever the offset)."""
-    mid = mid_of(origin, header)
+    does not fit the file's integer range. On the file's grid (`mid`: the integers of origin,
+    default: found from the header) the integers come from the relative positions alone
+    (exact, whatever the offset)."""
+    mid = mid_of(origin, header) if mid is None else mid
     if mid is not None:
         scaled = np.round(positions / np.asarray(header.scales)) + mid
     else:
@@ -210,11 +215,11 @@ def quantise(path, positions, header, origin=None) -> np.ndarray:
     return scaled.astype(np.int32)
 
 
-def _fill(path, record, raw, positions, origin, normals, outliers, header):
+def _fill(path, record, raw, positions, origin, normals, outliers, header, mid):
     """The output record: the input bytes, then new X/Y/Z, normals and outlier flags."""
     buf = record.array.view(np.uint8).reshape(len(record), -1)
     buf[:, :raw.shape[1]] = raw
-    ints = quantise(path, positions, header, origin)
+    ints = quantise(path, positions, header, origin, mid)
     for k, axis in enumerate("XYZ"):
         record.array[axis] = ints[:, k]
     if normals is not None:
@@ -224,7 +229,7 @@ def _fill(path, record, raw, positions, origin, normals, outliers, header):
         record[OUTLIER_DIM] = np.asarray(outliers, np.uint8)
 
 
-def _write_records(path, tmp, header, source_records, cloud, outliers):
+def _write_records(path, tmp, header, source_records, cloud, outliers, mid):
     """Stream (raw chunk) pairs from source_records into a LAS/LAZ file at tmp."""
     laspy = laspy_module()
     compress = Path(path).suffix.lower() == ".laz"
@@ -237,7 +242,7 @@ def _write_records(path, tmp, header, source_records, cloud, outliers):
                 record = laspy.ScaleAwarePointRecord.zeros(len(raw), header=writer.header)
                 _fill(path, record, raw, cloud.points[start:stop], cloud.origin,
                       None if normals is None else normals[start:stop],
-                      None if outliers is None else outliers[start:stop], header)
+                      None if outliers is None else outliers[start:stop], header, mid)
                 writer.write_points(record)
                 start = stop
             if header.evlrs and header.version.minor >= 4:
@@ -272,25 +277,103 @@ def _source_records(source: LasSource):
             yield raw
 
 
-def write_las(path, cloud, outliers=None) -> list:
-    """Write `cloud` as .las or .laz (by suffix), atomically. See the module docstring."""
+def _input_positions(raw, header, origin, mid) -> np.ndarray:
+    """(m, 3) float64 positions of raw records in the frame of a cloud with this origin."""
+    ints = np.ascontiguousarray(raw[:, :_POSITION_BYTES]).view("<i4").astype(np.int64)
+    if mid is not None:
+        return local_positions(ints, mid, header)
+    true = ints * np.asarray(header.scales) + np.asarray(header.offsets)
+    return true if origin is None else true - np.asarray(origin, np.float64)
+
+
+def _fits(points, header, origin, mid, factor) -> bool:
+    """Whether every position's integer at the header's scale / factor fits in int32."""
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    scales = np.asarray(header.scales) / factor
+    if mid is not None:
+        ends = np.stack([lo, hi]) / scales + mid * factor
+    else:
+        base = np.zeros(3) if origin is None else np.asarray(origin, np.float64)
+        ends = (np.stack([lo, hi]) + base - np.asarray(header.offsets)) / scales
+    return bool(np.all(np.abs(np.round(ends)) <= _INT32.max))
+
+
+def finer_decades(cloud, source: LasSource) -> int:
+    """How many powers of ten finer than the input's scale to write `cloud` at: 0 unless the
+    file's grid step is more than 1/MOVE_PER_STEP of the median move of the points that moved
+    (a 1 cm file of 4.6 mm noise: moves of 2.4 mm would round back to the input for most
+    points), then the fewest decades (at most MAX_FINER_DECADES, within int32) that bring it
+    there. Moves are read against the source's records (a LAZ is streamed once more) only when
+    some position is off the file's grid."""
+    header, points = source.header, np.asarray(cloud.points, np.float64)
+    mid = mid_of(cloud.origin, header)
+    step = float(np.max(header.scales))
+    base = np.zeros(3) if mid is not None or cloud.origin is None else np.asarray(cloud.origin)
+    on_grid = np.zeros(3) if mid is not None else np.asarray(header.offsets) - base
+    for start in range(0, len(points), CHUNK_POINTS):
+        units = (points[start:start + CHUNK_POINTS] - on_grid) / np.asarray(header.scales)
+        if np.any(np.abs(units - np.round(units)) > 1e-6):
+            break
+    else:
+        return 0                                        # nothing moved off the grid
+    moves, start = np.empty(len(points)), 0
+    for raw in _source_records(source):
+        stop = start + len(raw)
+        if stop > len(points):
+            return 0                                    # count mismatch: the writer says so
+        moves[start:stop] = np.linalg.norm(
+            points[start:stop] - _input_positions(raw, header, cloud.origin, mid), axis=1)
+        start = stop
+    moved = moves[:start][moves[:start] > 1e-6 * step]
+    if start != len(points) or len(moved) == 0:
+        return 0
+    wanted = float(np.median(moved)) / MOVE_PER_STEP
+    decades = 0
+    while decades < MAX_FINER_DECADES and step / 10 ** decades > wanted:
+        decades += 1
+    while decades and not _fits(points, header, cloud.origin, mid, 10 ** decades):
+        decades -= 1
+    return decades
+
+
+def _finer_scales(scales, decades) -> np.ndarray:
+    """scales / 10^decades, each the short decimal it is written as (0.01 -> 0.001, not
+    0.0009999...)."""
+    return np.array([float(f"{s / 10 ** decades:.12g}") for s in scales])
+
+
+def write_las(path, cloud, outliers=None, keep_scale=False) -> list:
+    """Write `cloud` as .las or .laz (by suffix), atomically. See the module docstring.
+    keep_scale: always the input's own scale, even where it rounds the cleaning away."""
     from .points import atomic_paths
 
     path = Path(path)
     _need_laz_backend(path)
     source = cloud.source if isinstance(getattr(cloud, "source", None), LasSource) else None
-    if source is None:
+    made = source is None                               # a new file's scale is already fine
+    if made:
         source = new_source(path, cloud)
     header = _output_header(source.header, cloud.normals is not None, outliers is not None)
+    mid = mid_of(cloud.origin, header)
+    decades = 0 if keep_scale or made else finer_decades(cloud, source)
+    if decades:
+        header.scales = _finer_scales(header.scales, decades)
+        mid = None if mid is None else mid * 10 ** decades
     with atomic_paths(path) as (tmp,):
         try:
             _write_records(path, tmp, header, _source_records(source),
-                           cloud, None if outliers is None else np.asarray(outliers))
+                           cloud, None if outliers is None else np.asarray(outliers), mid)
         except InputError:
             raise
         except OSError as exc:
             raise InputError(f"{path}: cannot write ({exc.strerror or exc})") from None
     return [path]
+
+
+def file_scales(path) -> tuple:
+    """The X, Y, Z scales in a LAS/LAZ file's header (read without its points)."""
+    with _open_reader(path) as reader:
+        return tuple(float(v) for v in reader.header.scales)
 
 
 # --------------------------------------------------------------------------- a new file
