@@ -444,3 +444,39 @@ def test_evlrs_are_kept(tmp_path):
                                                  source=cloud.source, origin=cloud.origin))
     evlrs = laspy.read(str(out)).evlrs
     assert [(v.user_id, v.record_id, len(v.record_data)) for v in evlrs] == [("CLJN_TEST", 42, 70000)]
+
+
+def test_a_copc_index_is_left_out_and_the_rest_kept(tmp_path):
+    """A COPC file (LAZ 1.4 plus a "copc" info VLR and hierarchy EVLR that locate octree chunks
+    by byte offset): written back as plain LAZ without that index, which would point into the
+    rewritten chunks; the CRS, other (E)VLRs and every record kept."""
+    src = tmp_path / "tile.copc.laz"
+    make_las(src, _cloud(500), fmt=6)
+    data = laspy.read(str(src))
+    data.header.vlrs.insert(0, laspy.VLR(user_id="copc", record_id=1, description="copc info",
+                                         record_data=bytes(160)))
+    data.evlrs = laspy.vlrs.vlrlist.VLRList([
+        laspy.VLR(user_id="copc", record_id=1000, description="EPT hierarchy", record_data=bytes(32)),
+        laspy.VLR(user_id="CLJN_TEST", record_id=7, description="kept", record_data=b"y" * 40)])
+    data.write(str(src))
+    a = laspy.read(str(src))
+    assert any(_vlr_id(v) == ("copc", 1) for v in a.header.vlrs), "the test file has no COPC info"
+
+    cloud = pointio.read_points(src, with_fields=False)
+    out = tmp_path / "clean.copc.laz"
+    pointio.write_points(out, pointio.PointCloud(cloud.points, np.tile(np.float32([0, 0, 1]), (500, 1)),
+                                                 source=cloud.source, origin=cloud.origin))
+    b = laspy.read(str(out))
+    assert [_vlr_id(v) for v in b.header.vlrs if _vlr_id(v)[0] == "copc"] == []
+    assert [_vlr_id(v) for v in b.evlrs] == [("CLJN_TEST", 7)]
+    assert any(isinstance(v, laspy.vlrs.known.WktCoordinateSystemVlr) for v in b.header.vlrs)
+    assert _fields_equal(a, b, skip=())
+    # What a Blender object keeps of the header (File > Import): the same, less the index.
+    kept = lasio.header_from_bytes(lasio.header_bytes(cloud.source.header))
+    assert [_vlr_id(v) for v in kept.vlrs if _vlr_id(v)[0] == "copc"] == []
+    assert [_vlr_id(v) for v in kept.evlrs] == [("CLJN_TEST", 7)]
+    assert any(isinstance(v, laspy.vlrs.known.WktCoordinateSystemVlr) for v in kept.vlrs)
+
+
+def _vlr_id(vlr):
+    return (str(vlr.user_id).rstrip("\x00"), int(vlr.record_id))

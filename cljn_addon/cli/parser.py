@@ -28,9 +28,10 @@ formats (by extension):
   .las .laz  in/out (laspy + lazrs): the input's point format, header (scale, offset, CRS and
           other VLRs/EVLRs) and every field in order; positions at the file's scale, or
           10-1000x finer where that grid would round the cleaning away (--keep-las-scale:
-          never; unmoved points keep their exact coordinates); normals as extra bytes NormalX NormalY NormalZ
-          (float32) and cljn_outlier (uint8, 1 = flagged). Streamed in chunks. From another
-          format: LAS 1.4 point format 6 (7 with red/green/blue).
+          never; unmoved points keep their exact coordinates); normals as extra bytes
+          NormalX NormalY NormalZ (float32) and cljn_outlier (uint8, 1 = flagged). Streamed
+          in chunks. A COPC tile comes back as plain LAZ (its octree index left out). From
+          another format: LAS 1.4 point format 6 (7 with red/green/blue).
   .blend  in: every point-cloud object (or --objects NAME...) is processed; other objects
           are left alone; saved as a new .blend (or --in-place, keeping NAME.blend1)
           out from a point file: a new scene holding the cloud as a mesh of vertices

@@ -9,6 +9,8 @@ cloud that has one streams the records again, chunk by chunk, and changes only:
   own scale, times 10^k at a finer one);
 - the extra-bytes dimensions NORMAL_DIMS (float32) and OUTLIER_DIM (uint8, 1 = flagged), added
   after the input's own dimensions (overwritten when the input already has them).
+A COPC file's octree index (its "copc" VLR and EVLR) is left out: the rewritten chunks no
+longer match it, and the rest is a plain LAZ 1.4.
 Every other byte of every record is copied, so intensity, returns, classification, RGB, GPS
 time and existing extra bytes come back exactly, in their order. Neither the records nor the
 fields are ever held for the whole file at once: positions are (N, 3) float64 in memory, the
@@ -176,10 +178,26 @@ def read_las(path, with_fields=True):
 
 # --------------------------------------------------------------------------- writing
 
-def _output_header(header, with_normals, with_outliers):
-    """The input's header with the normal and outlier extra bytes added when missing."""
+def _is_copc(vlr) -> bool:
+    return str(getattr(vlr, "user_id", "")).rstrip("\x00") == "copc"
+
+
+def _without_copc(header):
+    """A copy of header less a COPC index: its info VLR and hierarchy EVLR locate octree chunks
+    by byte offset, which rewritten points no longer have (and laspy writes no COPC)."""
     laspy = laspy_module()
     out = copy.deepcopy(header)
+    out.vlrs = laspy.vlrs.vlrlist.VLRList([v for v in out.vlrs if not _is_copc(v)])
+    if out.evlrs:
+        out.evlrs = laspy.vlrs.vlrlist.VLRList([v for v in out.evlrs if not _is_copc(v)])
+    return out
+
+
+def _output_header(header, with_normals, with_outliers):
+    """The input's header (less a COPC index) with the normal and outlier extra bytes added
+    when missing."""
+    laspy = laspy_module()
+    out = _without_copc(header)
     have = set(out.point_format.dimension_names)
     wanted = [laspy.ExtraBytesParams(name=d, type=np.float32, description="CLJN Denoise unit normal")
               for d in NORMAL_DIMS if with_normals]
@@ -432,6 +450,7 @@ def header_bytes(header) -> bytes:
     """The header (VLRs and EVLRs included) as a zero-point LAS file: how a Blender object
     keeps its file's georeferencing for export."""
     laspy = laspy_module()
+    header = _without_copc(header)
     buf = io.BytesIO()
     with laspy.LasWriter(buf, header, do_compress=False, closefd=False) as writer:
         if header.evlrs and header.version.minor >= 4:
