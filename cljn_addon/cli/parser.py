@@ -106,7 +106,7 @@ def _add_cloud_options(p: argparse.ArgumentParser, normals_only: bool):
                      help="LAS/LAZ out of LAS/LAZ: keep the input's scale even where its grid is "
                           "too coarse for the cleaning (moves of a few mm on a 1 cm grid round "
                           "back to the input). Default: then a scale 10-1000x finer, every input "
-                          "coordinate still exact (a LAZ grows by ~40%% a decade)")
+                          "coordinate still exact (a larger LAZ: +8%% for plane.laz with normals)")
     out.add_argument("--report", metavar="FILE.json",
                      help="write a machine-readable summary (per input: points, outliers, "
                           "seconds, output path, status)")
