@@ -105,6 +105,17 @@ def test_import_denoise_export_keeps_fields_and_georeferencing(bx):
         normals = np.stack([c["NormalX"], c["NormalY"], c["NormalZ"]], axis=1)
         assert np.allclose(normals, bx.attribute(obj, "cljn_normal"), atol=1e-5)
         assert np.array_equal(np.asarray(c["cljn_outlier"]).astype(bool), bx.attribute(obj, "cljn_outlier"))
+        # Outliers as Noise (Class 7): flagged points (two marked here) read 7, the rest as imported.
+        flags = obj.data.attributes["cljn_outlier"]
+        marked = np.zeros(len(flags.data), bool)
+        flags.data.foreach_get("value", marked)
+        marked[[0, 5]] = True
+        flags.data.foreach_set("value", marked)
+        noise = bx.tmp / f"noise{fmt}.laz"
+        assert bpy.ops.cljn.export_las(filepath=str(noise), classify_outliers=True) == {"FINISHED"}
+        classes = np.asarray(laspy.read(str(noise)).classification)
+        assert np.all(classes[marked] == 7)
+        assert np.array_equal(classes[~marked], np.asarray(a.classification)[~marked])
 
         if fmt == 6:
             # A colour painted on a cloud whose file has no RGB: exported with a warning, not lost silently.

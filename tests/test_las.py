@@ -63,6 +63,7 @@ def make_las(path, points, fmt=7, extra_bytes=True, offset=GEO_OFFSET, scale=0.0
     if extra_bytes:
         data.range = rng.random(n) * 50
         data.amplitude = rng.integers(-3000, 3000, n)
+    data.synthetic = rng.integers(0, 2, n).astype(bool)      # a flag beside the class
     data.write(str(path))
     return path
 
@@ -279,6 +280,54 @@ def test_command_line_reports_the_written_scale_and_keeps_the_file_s_on_request(
             assert written == (0.01, 0.01, 0.01)
         else:
             assert written[0] in (0.01, 0.001, 0.0001, 0.00001)
+
+
+@pytest.mark.parametrize("fmt", [1, 6])
+def test_classified_outliers_get_the_noise_class_and_nothing_else_changes(tmp_path, fmt):
+    """Formats 0-5 hold the class in 5 bits, 6-10 in a byte: either way flagged points read 7
+    (ASPRS low point/noise) and every other point and field is as it was."""
+    src = make_las(tmp_path / "in.las", _cloud(500), fmt=fmt)
+    cloud = pointio.read_points(src, with_fields=False)
+    outliers = np.zeros(500, bool)
+    outliers[[3, 77, 400]] = True
+    out = tmp_path / "out.las"
+    pointio.write_points(out, pointio.PointCloud(cloud.points, None, source=cloud.source, origin=cloud.origin),
+                         outliers=outliers, classify_outliers=True)
+    a, b = laspy.read(str(src)), laspy.read(str(out))
+    classes = np.asarray(b.classification)
+    assert np.all(classes[outliers] == lasio.NOISE_CLASS)
+    assert np.array_equal(classes[~outliers], np.asarray(a.classification)[~outliers])
+    assert np.count_nonzero(np.asarray(a.classification)[outliers] != lasio.NOISE_CLASS) > 0
+    assert _fields_equal(a, b, skip=("classification", "raw_classification"))
+    if fmt < 6:          # the byte's 3 flag bits (synthetic, key-point, withheld) kept
+        assert np.array_equal(a.points.array["raw_classification"] & 0xE0, b.points.array["raw_classification"] & 0xE0)
+    # Without the request the class is the input's.
+    pointio.write_points(out, pointio.PointCloud(cloud.points, None, source=cloud.source, origin=cloud.origin),
+                         outliers=outliers)
+    assert np.array_equal(np.asarray(laspy.read(str(out)).classification), np.asarray(a.classification))
+
+
+def test_command_line_classifies_the_outliers_it_flags(tmp_path, model_path):
+    """Three stray points far off the box are flagged; --classify-outliers gives exactly the
+    flagged points class 7 and says how many; a LAS-only flag without a LAS output is refused."""
+    import json
+
+    points = np.vstack([_cloud(1200), [[40.0, 0.0, 0.0], [0.0, 40.0, 0.0], [0.0, 0.0, 40.0]]])
+    src = make_las(tmp_path / "stray.las", points, fmt=6)
+    proc = cli("denoise", src, "-o", tmp_path / "clean.las", "--model", model_path, "--iterations", "1",
+               "--no-progress", "--classify-outliers", "--report", tmp_path / "r.json")
+    assert proc.returncode == 0, proc.stderr
+    b = laspy.read(str(tmp_path / "clean.las"))
+    flagged = np.asarray(b[lasio.OUTLIER_DIM]).astype(bool)
+    assert flagged[-3:].all()
+    assert np.array_equal(np.asarray(b.classification) == lasio.NOISE_CLASS,
+                          flagged | (np.asarray(laspy.read(str(src)).classification) == lasio.NOISE_CLASS))
+    report = json.loads((tmp_path / "r.json").read_text())["inputs"][0]
+    assert report["outliers_classified"] == int(flagged.sum()) == report["outliers"]
+    for flag in ("--classify-outliers", "--keep-las-scale"):
+        proc = cli("denoise", src, "-o", tmp_path / "clean.ply", "--model", model_path, "--no-progress", flag)
+        assert proc.returncode == 2 and f"{flag} applies to .las/.laz outputs" in proc.stderr, proc.stderr
+        assert not (tmp_path / "clean.ply").exists()
 
 
 def test_georeferenced_scan_denoises_like_the_same_scan_at_the_origin(tmp_path, model_path):

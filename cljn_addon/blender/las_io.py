@@ -188,9 +188,10 @@ def _apply_visible_fields(obj, view, n, warnings):
             view[c] = rgb[:, k].astype(np.uint16)
 
 
-def export_las(obj, path, keep_scale=False) -> list[str]:
+def export_las(obj, path, keep_scale=False, classify_outliers=False) -> list[str]:
     """Write obj's points (world space + ORIGIN) to a .las/.laz file; returns warnings.
-    keep_scale: the imported file's scale even where its grid rounds the cleaning away."""
+    keep_scale: the imported file's scale even where its grid rounds the cleaning away;
+    classify_outliers: flagged outliers get the noise class (las.NOISE_CLASS)."""
     from ..core.formats.points import PointCloud
 
     path = Path(path)
@@ -227,5 +228,6 @@ def export_las(obj, path, keep_scale=False) -> list[str]:
             if values is not None:
                 extra[field] = values
     cloud = PointCloud(points, _world_normals(obj, n), extra, source=source, origin=origin)
-    las.write_las(path, cloud, outliers=_outliers(obj, n), keep_scale=keep_scale)
+    las.write_las(path, cloud, outliers=_outliers(obj, n), keep_scale=keep_scale,
+                  classify_outliers=classify_outliers)
     return warnings

@@ -50,6 +50,10 @@ class CLJN_OT_export_las(bpy.types.Operator, ExportHelper):
         description="Write at the imported file's scale even where its grid is too coarse for "
                     "the cleaning (moves of a few mm on a 1 cm grid round back); off: a scale "
                     "10-1000x finer then, every imported coordinate still exact")
+    classify_outliers: BoolProperty(
+        name="Outliers as Noise (Class 7)", default=False,
+        description="Give points flagged as outliers classification 7 (ASPRS low point/noise), "
+                    "for tools that filter by class; their own class is overwritten in the file")
 
     @classmethod
     def poll(cls, context):
@@ -65,7 +69,8 @@ class CLJN_OT_export_las(bpy.types.Operator, ExportHelper):
             self.report({"ERROR"}, f"{path}: the file name must end in .las or .laz")
             return {"CANCELLED"}
         try:
-            warnings = las_io.export_las(context.active_object, path, keep_scale=self.keep_scale)
+            warnings = las_io.export_las(context.active_object, path, keep_scale=self.keep_scale,
+                                         classify_outliers=self.classify_outliers)
             scale = max(las.file_scales(path))
         except InputError as exc:
             self.report({"ERROR"}, str(exc))

@@ -113,6 +113,12 @@ def _jobs(a, inputs) -> list:
 
 
 def _check_outputs(a, inputs, jobs):
+    from ..core.formats.las import LAS_SUFFIXES
+
+    if not any(job.output.suffix.lower() in LAS_SUFFIXES for job in jobs):
+        for flag, given in (("--keep-las-scale", a.keep_las_scale), ("--classify-outliers", a.classify_outliers)):
+            if given:
+                raise UsageError(f"{flag} applies to .las/.laz outputs; none of the outputs is one")
     seen = {}
     for job in jobs:
         out_suffix = job.output.suffix.lower()
@@ -338,13 +344,16 @@ class CloudCommand:
             self._backup(job.output)
         job.output.parent.mkdir(parents=True, exist_ok=True)
         written = pointio.write_points(job.output, result, outliers=res.outliers,
-                                       keep_las_scale=self.args.keep_las_scale)
+                                       keep_las_scale=self.args.keep_las_scale,
+                                       classify_outliers=self.args.classify_outliers)
         job.report["output"] = str(job.output)
         if len(written) > 1:
             job.report["files"] = [str(p) for p in written]
         job.report.update(self._stats(str(job.input), res, job.output))
         if job.output.suffix.lower() in LAS_SUFFIXES:
             self._note_las_scale(job, cloud)
+            if self.args.classify_outliers:
+                job.report["outliers_classified"] = int(np.count_nonzero(res.outliers))
         self._keep_preview(job, job.input.stem, np.asarray(cloud.points, np.float64), res)
 
     def _note_las_scale(self, job, cloud):
@@ -357,7 +366,7 @@ class CloudCommand:
             given = tuple(float(v) for v in cloud.source.header.scales)
             if written != given:
                 out(f"{job.output}: written at scale {_scales_text(written)}, finer than the "
-                    f"input's {_scales_text(given)}, whose grid would round most moves back "
+                    f"input's {_scales_text(given)}, too coarse for the moves "
                     "(--keep-las-scale keeps it)")
 
     def _run_points_to_blend(self, job):

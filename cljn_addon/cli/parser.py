@@ -107,6 +107,10 @@ def _add_cloud_options(p: argparse.ArgumentParser, normals_only: bool):
                           "too coarse for the cleaning (moves of a few mm on a 1 cm grid round "
                           "back to the input). Default: then a scale 10-1000x finer, every input "
                           "coordinate still exact (a larger LAZ: +8%% for plane.laz with normals)")
+    out.add_argument("--classify-outliers", action="store_true",
+                     help="LAS/LAZ out: also give flagged outliers classification 7 (ASPRS low "
+                          "point/noise, as PDAL's outlier filter does), for tools that filter by "
+                          "class; their own class is overwritten in the output (the input keeps it)")
     out.add_argument("--report", metavar="FILE.json",
                      help="write a machine-readable summary (per input: points, outliers, "
                           "seconds, output path, status)")

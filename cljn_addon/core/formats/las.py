@@ -8,7 +8,8 @@ cloud that has one streams the records again, chunk by chunk, and changes only:
   move (outliers, `normals`) come back to the same coordinates (the same integers at the file's
   own scale, times 10^k at a finer one);
 - the extra-bytes dimensions NORMAL_DIMS (float32) and OUTLIER_DIM (uint8, 1 = flagged), added
-  after the input's own dimensions (overwritten when the input already has them).
+  after the input's own dimensions (overwritten when the input already has them);
+- on request (`classify_outliers`), the classification of flagged outliers: NOISE_CLASS.
 A COPC file's octree index (its "copc" VLR and EVLR) is left out: the rewritten chunks no
 longer match it, and the rest is a plain LAZ 1.4.
 Every other byte of every record is copied, so intensity, returns, classification, RGB, GPS
@@ -36,6 +37,7 @@ LAS_SUFFIXES = (".las", ".laz")
 NORMAL_DIMS = ("NormalX", "NormalY", "NormalZ")   # PDAL's names; float32 extra bytes
 OUTLIER_DIM = "cljn_outlier"                       # uint8 extra bytes, 1 = flagged outlier
 CHUNK_POINTS = 1_000_000
+NOISE_CLASS = 7                # ASPRS "low point (noise)": what PDAL's filters.outlier sets
 MAX_FINER_DECADES = 3          # write at most 1000x finer than the input's scale
 MOVE_PER_STEP = 2.0            # grid step <= half the median move: rounding ~13% of a move
 _POSITION_BYTES = 12                               # X, Y, Z int32: the first 12 bytes of a record
@@ -233,8 +235,9 @@ def quantise(path, positions, header, origin=None, mid=None) -> np.ndarray:
     return scaled.astype(np.int32)
 
 
-def _fill(path, record, raw, positions, origin, normals, outliers, header, mid):
-    """The output record: the input bytes, then new X/Y/Z, normals and outlier flags."""
+def _fill(path, record, raw, positions, origin, normals, outliers, header, mid, classify):
+    """The output record: the input bytes, then new X/Y/Z, normals and outlier flags (and with
+    classify, the outliers' class)."""
     buf = record.array.view(np.uint8).reshape(len(record), -1)
     buf[:, :raw.shape[1]] = raw
     ints = quantise(path, positions, header, origin, mid)
@@ -245,9 +248,13 @@ def _fill(path, record, raw, positions, origin, normals, outliers, header, mid):
             record[d] = normals[:, k].astype(np.float32)
     if outliers is not None:
         record[OUTLIER_DIM] = np.asarray(outliers, np.uint8)
+        if classify:
+            classes = np.array(record["classification"])
+            classes[np.asarray(outliers, bool)] = NOISE_CLASS
+            record["classification"] = classes
 
 
-def _write_records(path, tmp, header, source_records, cloud, outliers, mid):
+def _write_records(path, tmp, header, source_records, cloud, outliers, mid, classify):
     """Stream (raw chunk) pairs from source_records into a LAS/LAZ file at tmp."""
     laspy = laspy_module()
     compress = Path(path).suffix.lower() == ".laz"
@@ -260,7 +267,7 @@ def _write_records(path, tmp, header, source_records, cloud, outliers, mid):
                 record = laspy.ScaleAwarePointRecord.zeros(len(raw), header=writer.header)
                 _fill(path, record, raw, cloud.points[start:stop], cloud.origin,
                       None if normals is None else normals[start:stop],
-                      None if outliers is None else outliers[start:stop], header, mid)
+                      None if outliers is None else outliers[start:stop], header, mid, classify)
                 writer.write_points(record)
                 start = stop
             if header.evlrs and header.version.minor >= 4:
@@ -360,9 +367,11 @@ def _finer_scales(scales, decades) -> np.ndarray:
     return np.array([float(f"{s / 10 ** decades:.12g}") for s in scales])
 
 
-def write_las(path, cloud, outliers=None, keep_scale=False) -> list:
+def write_las(path, cloud, outliers=None, keep_scale=False, classify_outliers=False) -> list:
     """Write `cloud` as .las or .laz (by suffix), atomically. See the module docstring.
-    keep_scale: always the input's own scale, even where it rounds the cleaning away."""
+    keep_scale: always the input's own scale, even where it rounds the cleaning away.
+    classify_outliers: flagged outliers also get classification NOISE_CLASS (their own class
+    is not kept in the output; the input file still has it)."""
     from .points import atomic_paths
 
     path = Path(path)
@@ -380,7 +389,8 @@ def write_las(path, cloud, outliers=None, keep_scale=False) -> list:
     with atomic_paths(path) as (tmp,):
         try:
             _write_records(path, tmp, header, _source_records(source),
-                           cloud, None if outliers is None else np.asarray(outliers), mid)
+                           cloud, None if outliers is None else np.asarray(outliers), mid,
+                           classify_outliers)
         except InputError:
             raise
         except OSError as exc:

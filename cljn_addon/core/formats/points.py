@@ -531,10 +531,11 @@ def _read_las(path, with_fields=True):
     return read_las(path, with_fields=with_fields)
 
 
-def _write_las(path, cloud, outliers=None, keep_las_scale=False):
+def _write_las(path, cloud, outliers=None, keep_las_scale=False, classify_outliers=False):
     from .las import write_las
 
-    return write_las(path, cloud, outliers=outliers, keep_scale=keep_las_scale)
+    return write_las(path, cloud, outliers=outliers, keep_scale=keep_las_scale,
+                     classify_outliers=classify_outliers)
 
 
 _READERS = {".ply": read_ply, ".xyz": read_xyz, ".npy": read_npy, ".las": _read_las, ".laz": _read_las}
@@ -558,15 +559,18 @@ def read_points(path, *, with_fields=True) -> PointCloud:
     return reader(path)
 
 
-def write_points(path, cloud: PointCloud, outliers=None, keep_las_scale=False) -> list:
+def write_points(path, cloud: PointCloud, outliers=None, keep_las_scale=False,
+                 classify_outliers=False) -> list:
     """Write by extension; returns the list of files written (the .xyz writer adds .normals).
-    keep_las_scale: a LAS/LAZ from a LAS/LAZ keeps the input's scale even where its grid
-    rounds the cleaning away (default: a finer power of ten then; see las.finer_decades)."""
+    LAS/LAZ only: keep_las_scale keeps a LAS input's scale even where its grid rounds the
+    cleaning away (default: a finer power of ten then; see las.finer_decades);
+    classify_outliers gives flagged outliers the noise class (las.NOISE_CLASS)."""
     path = Path(path)
     writer = _WRITERS.get(path.suffix.lower())
     if writer is None:
         raise InputError(f"{path}: unsupported output format {path.suffix or '(none)'!r} "
                          f"(use {', '.join(POINT_SUFFIXES)})")
     if writer is _write_las:
-        return writer(path, cloud, outliers=outliers, keep_las_scale=keep_las_scale)
+        return writer(path, cloud, outliers=outliers, keep_las_scale=keep_las_scale,
+                      classify_outliers=classify_outliers)
     return writer(path, cloud, outliers=outliers)
