@@ -40,7 +40,6 @@ CHUNK_POINTS = 1_000_000
 NOISE_CLASS = 7                # ASPRS "low point (noise)": what PDAL's filters.outlier sets
 MAX_FINER_DECADES = 3          # write at most 1000x finer than the input's scale
 MOVE_PER_STEP = 2.0            # grid step <= half the median move: rounding ~13% of a move
-_POSITION_BYTES = 12                               # X, Y, Z int32: the first 12 bytes of a record
 _INT32 = np.iinfo(np.int32)
 
 
@@ -304,7 +303,7 @@ def _source_records(source: LasSource):
 
 def _input_positions(raw, header, origin, mid) -> np.ndarray:
     """(m, 3) float64 positions of raw records in the frame of a cloud with this origin."""
-    ints = np.ascontiguousarray(raw[:, :_POSITION_BYTES]).view("<i4").astype(np.int64)
+    ints = record_ints(record_view(raw, header))
     if mid is not None:
         return local_positions(ints, mid, header)
     true = ints * np.asarray(header.scales) + np.asarray(header.offsets)
