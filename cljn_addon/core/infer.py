@@ -26,7 +26,7 @@ from .noise import (
 from .orient import orient_normals
 from .origin import median_count_within, origin_normals
 from .patches import PatchSource, bbox_diagonal, framed_patches, from_frame
-from .refine import inflation, lrma_update
+from .refine import HEIGHT_AVERAGE_NEIGHBOURS, HEIGHT_AVERAGE_SIGMAS, height_average, inflation, lrma_update
 from .rims import rim_normals as rim_outward_normals
 from .risk import KEPT_INPUT, choose_among, choose_by_risk, fitted_normals, probe_offsets
 from .rods import RodNormals, section_radius
@@ -344,7 +344,8 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
          points_per_patch=None, orientation="outward", viewpoint=None,
          device="auto", progress=None, cancel=None, seed=0, refine=True, max_displacement=None,
          normal_motion_only=True, own_sheet="auto", split_walls=True, on_iteration=None, noise_sigma=None,
-         rod_normals=True, risk_check=True, rim_normals=True, varying_noise=None, normals_pass=True):
+         rod_normals=True, risk_check=True, rim_normals=True, varying_noise=None, normals_pass=True,
+         smooth_heights=False):
     """The engine behind `denoise` (move_points=True) and `estimate_normals` (False).
 
     points: (N, 3) array, any units. patch_radius: absolute radius; otherwise
@@ -422,6 +423,12 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
     check's second run; displacement_bound in the result is then the largest point's.
     normals_pass=False: no pass for the normals after the last moving one (the risk checks'
     runs on a nudged input need only the positions).
+    smooth_heights (ours, default False for now): after the passes (not own-sheet ones), each
+    point moves along its normal to the mean height of the points within
+    `refine.HEIGHT_AVERAGE_SIGMAS` noise sigmas (its own, where the noise varies) whose normals
+    agree with its own (`refine.height_average`): the passes leave part of the noise. Before the
+    risk check, so its nudged run and its choice judge the averaged result. Off until the eval
+    has run with it at every level (README, "Heights averaged after the passes").
     """
     t0 = time.time()
     given = validate_points(points)
@@ -636,13 +643,21 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
         normals = new_normals
         rods = on_rods(normals, section)
 
+    if move_points and smooth_heights and not own_sheet and np.isfinite(sigma) and sigma > 0:
+        # Own-sheet passes are left as they are: a wall's two faces have agreeing normals.
+        report(0.94, "averaging heights along the normals")
+        reach = HEIGHT_AVERAGE_SIGMAS * (sigma if local is None else local.sigma)
+        k = median_count_within(cKDTree(current), current, float(np.median(reach)), *HEIGHT_AVERAGE_NEIGHBOURS,
+                                seed=seed)
+        current = clamp_displacement(height_average(current, normals, reach, k), original[inliers], point_bound)
     plane_share = kept_share = 0.0
     plane_placed = np.zeros(len(current), bool)   # placed by a plane filter (the risk check)
     kept_input = np.zeros(len(current), bool)     # left at the input (the risk check)
     if risk_check:
         # The same passes (same seed, pass count, radius, sigma, bound) on the input nudged
         # along the normals give the network's divergence for the risk estimate. Normals only:
-        # its one pass filtered the surface its normals come from; that surface is checked.
+        # its one pass filtered the surface its normals come from; that surface is checked
+        # (its heights not averaged: the nudged run's are not either).
         risk_sigma = quiet_sigma if local is None else local.sigma
         amplitude, offsets = probe_offsets(normals, risk_sigma, seed=seed + 2)
         probe = _run(original[inliers] + offsets, model, iterations, move_points=True,
@@ -651,7 +666,7 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
                      device=device, cancel=cancel, seed=seed, refine=refine, max_displacement=bound,
                      normal_motion_only=normal_motion_only, own_sheet=False, split_walls=False,
                      noise_sigma=sigma, rod_normals=rod_normals, risk_check=False, varying_noise=local,
-                     progress=None if progress is None else
+                     smooth_heights=smooth_heights and move_points, progress=None if progress is None else
                      lambda f, m: progress(0.5 + 0.45 * min(f, 1.0), f"checking against plane filters: {m}"))
         if cancel is not None and cancel.is_set():
             raise Cancelled("cancelled")
@@ -694,7 +709,8 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
             original[inliers], model, current, normals, sigma, bound, seed=seed, cancel=cancel,
             progress=sub_progress, patch_radius=patch_radius, patch_radius_fraction=fraction,
             points_per_patch=points_per_patch, device=device, refine=refine,
-            normal_motion_only=normal_motion_only, rod_normals=rod_normals, split_walls=split_walls)
+            normal_motion_only=normal_motion_only, rod_normals=rod_normals, split_walls=split_walls,
+            smooth_heights=smooth_heights)
         # `rods` stays: the solid's run took its rods' normals from their sections too.
         side[solid] = solid_side[solid]      # the solid's run split its own walls
         solid_share = float(np.mean(solid))

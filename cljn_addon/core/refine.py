@@ -66,8 +66,39 @@ def lrma_update(points: np.ndarray, normals: np.ndarray, k: int = 20, max_offset
     return out
 
 
-def _rows(max_offset, start):
+def _rows(max_offset, start, rows=CHUNK):
     """A chunk's max_offset: a number, or its rows' column of a per-point array."""
     if np.ndim(max_offset) == 0:
         return max_offset
-    return np.asarray(max_offset)[start:start + CHUNK, None]
+    return np.asarray(max_offset)[start:start + rows, None]
+
+
+# After the passes (ours): each point moves along its normal to the mean height of the points
+# within `HEIGHT_AVERAGE_SIGMAS` noise sigmas whose normals agree with its own to
+# `HEIGHT_AVERAGE_AGREEMENT` (|cos|: the passes' normals are not yet oriented). The network
+# sees 128 points a patch at any density and leaves part of the noise: the validation meshes at
+# 2% (50K points), their outputs so averaged, Chamfer falls 5-22% (boxunion 5.06 -> 4.33,
+# column_head 11.87 -> 11.26, cylinder 3.91 -> 3.05); the agreement keeps the far face of an
+# edge out of the mean (boxunion 6.38 without it). A plate thinner than the noise, whose
+# output is one sheet, loses (8.43 -> 10.07): Chamfer rewards the spread left about its faces.
+HEIGHT_AVERAGE_SIGMAS = 2.0
+HEIGHT_AVERAGE_AGREEMENT = 0.95
+HEIGHT_AVERAGE_NEIGHBOURS = (8, 256)    # the k that reaches the ball, clipped to this range
+
+
+def height_average(points: np.ndarray, normals: np.ndarray, radius, k: int) -> np.ndarray:
+    """Each point moved along its unit normal to the mean height (along that normal) of its k
+    nearest within `radius` (a number, or one per point) whose normals agree with its own."""
+    k = min(k, len(points))
+    tree = cKDTree(points)
+    out = np.empty_like(points)
+    for s in range(0, len(points), CHUNK // 4):
+        p, n = points[s:s + CHUNK // 4], normals[s:s + CHUNK // 4]
+        dist, idx = tree.query(p, k=k, workers=-1)
+        dist, idx = dist.reshape(len(p), k), idx.reshape(len(p), k)
+        agree = np.abs(np.einsum("mkc,mc->mk", normals[idx], n)) >= HEIGHT_AVERAGE_AGREEMENT
+        near = agree & (dist <= _rows(radius, s, CHUNK // 4))
+        height = np.einsum("mkc,mc->mk", points[idx] - p[:, None, :], n)
+        mean = (height * near).sum(axis=1) / np.maximum(near.sum(axis=1), 1)
+        out[s:s + CHUNK // 4] = p + mean[:, None] * n
+    return out
