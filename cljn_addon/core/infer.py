@@ -26,7 +26,7 @@ from .noise import (
 from .orient import orient_normals
 from .origin import median_count_within, origin_normals
 from .patches import PatchSource, bbox_diagonal, framed_patches, from_frame
-from .refine import HEIGHT_AVERAGE_NEIGHBOURS, HEIGHT_AVERAGE_SIGMAS, height_average, inflation, lrma_update
+from .refine import HEIGHT_AVERAGE_SIGMAS, height_average, inflation, lrma_update
 from .rims import rim_normals as rim_outward_normals
 from .risk import KEPT_INPUT, choose_among, choose_by_risk, fitted_normals, probe_offsets
 from .rods import RodNormals, section_radius
@@ -647,9 +647,8 @@ def _run(points, model, iterations, *, move_points, patch_radius=None, patch_rad
         # Own-sheet passes are left as they are: a wall's two faces have agreeing normals.
         report(0.94, "averaging heights along the normals")
         reach = HEIGHT_AVERAGE_SIGMAS * (sigma if local is None else local.sigma)
-        k = median_count_within(cKDTree(current), current, float(np.median(reach)), *HEIGHT_AVERAGE_NEIGHBOURS,
-                                seed=seed)
-        current = clamp_displacement(height_average(current, normals, reach, k), original[inliers], point_bound)
+        current = clamp_displacement(height_average(current, normals, reach, seed=seed), original[inliers],
+                                     point_bound)
     plane_share = kept_share = 0.0
     plane_placed = np.zeros(len(current), bool)   # placed by a plane filter (the risk check)
     kept_input = np.zeros(len(current), bool)     # left at the input (the risk check)

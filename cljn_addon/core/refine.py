@@ -4,6 +4,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .origin import median_count_within
+
 CHUNK = 65536  # rows per neighbour query: bounds memory for million-point clouds
 
 
@@ -86,19 +88,24 @@ HEIGHT_AVERAGE_AGREEMENT = 0.95
 HEIGHT_AVERAGE_NEIGHBOURS = (8, 256)    # the k that reaches the ball, clipped to this range
 
 
-def height_average(points: np.ndarray, normals: np.ndarray, radius, k: int) -> np.ndarray:
+def height_average(points: np.ndarray, normals: np.ndarray, radius, k: int | None = None, seed: int = 0) -> np.ndarray:
     """Each point moved along its unit normal to the mean height (along that normal) of its k
-    nearest within `radius` (a number, or one per point) whose normals agree with its own."""
-    k = min(k, len(points))
+    nearest within `radius` (a number, or one per point) whose normals agree with its own.
+    k: by default the median count within the median radius, clipped to
+    `HEIGHT_AVERAGE_NEIGHBOURS`."""
     tree = cKDTree(points)
+    if k is None:
+        k = median_count_within(tree, points, float(np.median(radius)), *HEIGHT_AVERAGE_NEIGHBOURS, seed=seed)
+    k = min(k, len(points))
+    rows = CHUNK // 4                  # k reaches 256: a quarter of the refinement's chunk
     out = np.empty_like(points)
-    for s in range(0, len(points), CHUNK // 4):
-        p, n = points[s:s + CHUNK // 4], normals[s:s + CHUNK // 4]
+    for s in range(0, len(points), rows):
+        p, n = points[s:s + rows], normals[s:s + rows]
         dist, idx = tree.query(p, k=k, workers=-1)
         dist, idx = dist.reshape(len(p), k), idx.reshape(len(p), k)
         agree = np.abs(np.einsum("mkc,mc->mk", normals[idx], n)) >= HEIGHT_AVERAGE_AGREEMENT
-        near = agree & (dist <= _rows(radius, s, CHUNK // 4))
+        near = agree & (dist <= _rows(radius, s, rows))
         height = np.einsum("mkc,mc->mk", points[idx] - p[:, None, :], n)
         mean = (height * near).sum(axis=1) / np.maximum(near.sum(axis=1), 1)
-        out[s:s + CHUNK // 4] = p + mean[:, None] * n
+        out[s:s + rows] = p + mean[:, None] * n
     return out
